@@ -1,0 +1,1 @@
+"""Conversions between ROS 2 messages (rclpy or rosbags classes) and vigs_core types. No node logic."""

@@ -1,0 +1,27 @@
+"""VIGS-ROS: pip-installable, and buildable by colcon as an ament_python package."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "vigs_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Visual-inertial Gaussian-splatting SLAM for ROS 2 (monocular camera + IMU)",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["vigs_core*", "msg_adapters*", "vigs_ros*", "vigs_cli*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+    ],
+    install_requires=["numpy", "scipy", "pyyaml", "opencv-python-headless", "torch"],
+    zip_safe=True,
+    entry_points={
+        "console_scripts": [
+            "vigs = vigs_cli.main:main",
+        ],
+    },
+)

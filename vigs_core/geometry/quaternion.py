@@ -1,0 +1,79 @@
+"""Hamilton unit quaternions stored as ``(w, x, y, z)`` (..., 4).
+
+EuRoC CSV files use this order; TUM trajectory text uses ``(x, y, z, w)``. The product is
+Hamilton's (``i j = k``), so ``quat_to_matrix(q1 * q2) = quat_to_matrix(q1) @ quat_to_matrix(q2)``.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def quat_xyzw_to_wxyz(q: torch.Tensor) -> torch.Tensor:
+    """Reorder TUM ``(x, y, z, w)`` to internal ``(w, x, y, z)``."""
+    return torch.cat((q[..., 3:], q[..., :3]), -1)
+
+
+def quat_wxyz_to_xyzw(q: torch.Tensor) -> torch.Tensor:
+    """Reorder internal ``(w, x, y, z)`` to TUM ``(x, y, z, w)``."""
+    return torch.cat((q[..., 1:], q[..., :1]), -1)
+
+
+def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``q1 * q2`` of (..., 4) quaternions in ``(w, x, y, z)`` order."""
+    w1, x1, y1, z1 = q1.unbind(-1)
+    w2, x2, y2, z2 = q2.unbind(-1)
+    return torch.stack(
+        (
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ),
+        -1,
+    )
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of a quaternion (..., 4) ``(w, x, y, z)``; the input is normalised first."""
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            torch.stack((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)), -1),
+            torch.stack((2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)), -1),
+            torch.stack((2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)), -1),
+        ),
+        -2,
+    )
+
+
+def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``(w, x, y, z)`` of rotation matrices (..., 3, 3), with ``w >= 0``.
+
+    Shepperd's method: of the four algebraically equal formulas (one per largest of
+    ``w^2, x^2, y^2, z^2``), take the one with the largest pivot, which is never below 1/2 and so
+    keeps full precision for every rotation.
+    """
+    m = rot
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+    # 4 q_k^2 for each candidate pivot (w, x, y, z).
+    pivots = torch.stack((1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22), -1)
+    s21, s02, s10 = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
+    a01, a02, a12 = m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]
+    # Each row is 4 q_k * q for candidate k (before dividing by 4 q_k = 2 sqrt(pivot_k)).
+    candidates = torch.stack(
+        (
+            torch.stack((pivots[..., 0], s21, s02, s10), -1),
+            torch.stack((s21, pivots[..., 1], a01, a02), -1),
+            torch.stack((s02, a01, pivots[..., 2], a12), -1),
+            torch.stack((s10, a02, a12, pivots[..., 3]), -1),
+        ),
+        -2,
+    )
+    best = pivots.argmax(-1)
+    chosen = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    pivot = torch.gather(pivots, -1, best[..., None]).clamp_min(1e-12)
+    q = chosen / (2.0 * pivot.sqrt())
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)

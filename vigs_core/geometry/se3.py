@@ -1,0 +1,121 @@
+"""SE(3) as homogeneous 4x4 matrices, tangent ``xi = (rho, phi)`` (translation first).
+
+``xi^ = [[phi]x, rho; 0, 0]``, ``Exp(xi) = expm(xi^) = [[Exp(phi), J_l(phi) rho]; [0, 1]]``
+(Barfoot 2017, Eq. 7.83-7.85). Adjoint ``Ad_T = [[R, [t]x R]; [0, R]]`` so that
+``T Exp(xi) T^{-1} = Exp(Ad_T xi)``.
+
+The group Jacobians use the series ``J_l(xi) = sum_n ad_xi^n / (n+1)!``, evaluated exactly as the
+top-right block of ``expm([[ad_xi, I]; [0, 0]])`` (Van Loan's block formula). This has no
+small-angle special cases and is differentiable; it is not on any hot path.
+"""
+from __future__ import annotations
+
+import torch
+
+from vigs_core.geometry.so3 import hat, so3_exp, so3_left_jacobian, so3_left_jacobian_inv, so3_log
+
+
+def se3_from_rt(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """Assemble (..., 4, 4) transforms from rotations (..., 3, 3) and translations (..., 3)."""
+    out = torch.zeros(*rot.shape[:-2], 4, 4, dtype=rot.dtype, device=rot.device)
+    out[..., :3, :3] = rot
+    out[..., :3, 3] = trans
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_rotation(t: torch.Tensor) -> torch.Tensor:
+    """Rotation block (..., 3, 3) of a transform."""
+    return t[..., :3, :3]
+
+
+def se3_translation(t: torch.Tensor) -> torch.Tensor:
+    """Translation (..., 3) of a transform."""
+    return t[..., :3, 3]
+
+
+def se3_hat(xi: torch.Tensor) -> torch.Tensor:
+    """Lie-algebra matrix (..., 4, 4) of a twist (..., 6)."""
+    out = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype, device=xi.device)
+    out[..., :3, :3] = hat(xi[..., 3:])
+    out[..., :3, 3] = xi[..., :3]
+    return out
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """``Exp(xi)`` for twists (..., 6) -> (..., 4, 4): ``R = Exp(phi)``, ``t = J_l(phi) rho``."""
+    phi = xi[..., 3:]
+    trans = (so3_left_jacobian(phi) @ xi[..., :3, None])[..., 0]
+    return se3_from_rt(so3_exp(phi), trans)
+
+
+def se3_log(t: torch.Tensor) -> torch.Tensor:
+    """``Log(T)`` (..., 4, 4) -> (..., 6): ``phi = Log(R)``, ``rho = J_l(phi)^{-1} t``."""
+    phi = so3_log(t[..., :3, :3])
+    rho = (so3_left_jacobian_inv(phi) @ t[..., :3, 3:4])[..., 0]
+    return torch.cat((rho, phi), -1)
+
+
+def se3_inverse(t: torch.Tensor) -> torch.Tensor:
+    """Inverse transform ``[[R^T, -R^T t]; [0, 1]]``."""
+    rt = t[..., :3, :3].transpose(-1, -2)
+    return se3_from_rt(rt, -(rt @ t[..., :3, 3:4])[..., 0])
+
+
+def se3_compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Composition ``a b`` (broadcasting over leading dimensions)."""
+    return a @ b
+
+
+def se3_act(t: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply transforms (..., 4, 4) to points (..., N, 3) -> (..., N, 3): ``R p + t``."""
+    return points @ t[..., :3, :3].transpose(-1, -2) + t[..., None, :3, 3]
+
+
+def se3_adjoint(t: torch.Tensor) -> torch.Tensor:
+    """Adjoint (..., 6, 6) ``[[R, [t]x R]; [0, R]]`` for the (rho, phi) ordering."""
+    rot, trans = t[..., :3, :3], t[..., :3, 3]
+    out = torch.zeros(*t.shape[:-2], 6, 6, dtype=t.dtype, device=t.device)
+    out[..., :3, :3] = rot
+    out[..., 3:, 3:] = rot
+    out[..., :3, 3:] = hat(trans) @ rot
+    return out
+
+
+def se3_ad(xi: torch.Tensor) -> torch.Tensor:
+    """Small adjoint (..., 6, 6) ``ad_xi = [[[phi]x, [rho]x]; [0, [phi]x]]``."""
+    out = torch.zeros(*xi.shape[:-1], 6, 6, dtype=xi.dtype, device=xi.device)
+    phi_x = hat(xi[..., 3:])
+    out[..., :3, :3] = phi_x
+    out[..., 3:, 3:] = phi_x
+    out[..., :3, 3:] = hat(xi[..., :3])
+    return out
+
+
+def series_left_jacobian(ad: torch.Tensor) -> torch.Tensor:
+    """``sum_n ad^n / (n+1)!`` for (..., n, n) ``ad`` via ``expm([[ad, I]; [0, 0]])`` (Van Loan)."""
+    n = ad.shape[-1]
+    block = torch.zeros(*ad.shape[:-2], 2 * n, 2 * n, dtype=ad.dtype, device=ad.device)
+    block[..., :n, :n] = ad
+    block[..., :n, n:] = torch.eye(n, dtype=ad.dtype, device=ad.device)
+    return torch.linalg.matrix_exp(block)[..., :n, n:]
+
+
+def se3_left_jacobian(xi: torch.Tensor) -> torch.Tensor:
+    """Left Jacobian (..., 6, 6): ``Exp(xi + d) ~= Exp(J_l(xi) d) Exp(xi)``."""
+    return series_left_jacobian(se3_ad(xi))
+
+
+def se3_right_jacobian(xi: torch.Tensor) -> torch.Tensor:
+    """Right Jacobian ``J_r(xi) = J_l(-xi)``: ``Exp(xi + d) ~= Exp(xi) Exp(J_r(xi) d)``."""
+    return series_left_jacobian(se3_ad(-xi))
+
+
+def se3_left_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`se3_left_jacobian`."""
+    return torch.linalg.inv(se3_left_jacobian(xi))
+
+
+def se3_right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`se3_right_jacobian`."""
+    return torch.linalg.inv(se3_right_jacobian(xi))

@@ -1,0 +1,112 @@
+"""SO(3): exponential/logarithm maps and Jacobians, batched over leading dimensions.
+
+Formulas follow Barfoot, "State Estimation for Robotics" (2017), Sec. 7.1, and Forster et al.,
+"On-Manifold Preintegration" (T-RO 2017), Eq. (8) and (9):
+
+* ``Exp(phi) = I + sin(t)/t [phi]x + (1 - cos(t))/t^2 [phi]x^2`` with ``t = |phi|`` (Rodrigues).
+* ``J_r(phi) = I - (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2`` and ``J_l(phi) = J_r(-phi)``.
+* ``J_r^{-1}(phi) = I + 1/2 [phi]x + (1/t^2 - (1 + cos t)/(2 t sin t)) [phi]x^2``.
+
+Near ``t = 0`` every coefficient switches to its Taylor series, so values and autograd gradients
+stay finite. The logarithm goes through the quaternion (Shepperd's method), which stays accurate
+near ``t = pi`` where the trace formula loses all precision.
+"""
+from __future__ import annotations
+
+import torch
+
+# Below this angle (rad) the trigonometric coefficients use their Taylor series.
+_SMALL_ANGLE = 1e-4
+
+
+def hat(v: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrix ``[v]x`` of ``v`` (..., 3) -> (..., 3, 3), with ``[v]x w = v x w``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        (torch.stack((o, -z, y), -1), torch.stack((z, o, -x), -1), torch.stack((-y, x, o), -1)), -2
+    )
+
+
+def vee(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`hat`: (..., 3, 3) -> (..., 3); uses the antisymmetric part of ``m``."""
+    return 0.5 * torch.stack(
+        (m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), -1
+    )
+
+
+def _angle(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Return (theta, theta^2, small-mask) with theta safe to divide by (set to 1 where small)."""
+    theta2 = (phi * phi).sum(-1)
+    small = theta2 < _SMALL_ANGLE**2
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    return theta2_safe.sqrt(), theta2, small
+
+
+def _coefficients(phi: torch.Tensor):
+    """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0)."""
+    theta, theta2, small = _angle(phi)
+    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(theta)) / theta**2)
+    c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (theta - torch.sin(theta)) / theta**3)
+    return a, b, c
+
+
+def _eye_like(phi: torch.Tensor) -> torch.Tensor:
+    return torch.eye(3, dtype=phi.dtype, device=phi.device).expand(*phi.shape[:-1], 3, 3)
+
+
+def so3_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``Exp(phi)`` for rotation vectors ``phi`` (..., 3) -> (..., 3, 3) (Rodrigues)."""
+    a, b, _ = _coefficients(phi)
+    k = hat(phi)
+    return _eye_like(phi) + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation vector ``Log(R)`` (..., 3, 3) -> (..., 3), angle in [0, pi].
+
+    Computed from the unit quaternion ``q = (w, v)``: ``phi = 2 atan2(|v|, w) v / |v|``, with the
+    sign of ``q`` chosen so ``w >= 0``; this is well conditioned for every angle including pi.
+    """
+    from vigs_core.geometry.quaternion import matrix_to_quat
+
+    q = matrix_to_quat(rot)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = (v * v).sum(-1)
+    small = n2 < 1e-12
+    n = torch.where(small, torch.ones_like(n2), n2).sqrt()
+    # 2 atan2(n, w) / n ~ 2/w (1 - n^2/(3 w^2)) for small n.
+    scale = torch.where(small, 2.0 / w - (2.0 / 3.0) * n2 / w**3, 2.0 * torch.atan2(n, w) / n)
+    return scale[..., None] * v
+
+
+def so3_right_jacobian(phi: torch.Tensor) -> torch.Tensor:
+    """Right Jacobian ``J_r(phi)`` (..., 3, 3): ``Exp(phi + d) ~= Exp(phi) Exp(J_r(phi) d)``."""
+    _, b, c = _coefficients(phi)
+    k = hat(phi)
+    return _eye_like(phi) - b[..., None, None] * k + c[..., None, None] * (k @ k)
+
+
+def so3_left_jacobian(phi: torch.Tensor) -> torch.Tensor:
+    """Left Jacobian ``J_l(phi) = J_r(-phi)``: ``Exp(phi + d) ~= Exp(J_l(phi) d) Exp(phi)``."""
+    return so3_right_jacobian(-phi)
+
+
+def so3_right_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
+    """Inverse right Jacobian ``J_r^{-1}(phi)`` (..., 3, 3), closed form (Forster 2017, Eq. 9)."""
+    theta, theta2, small = _angle(phi)
+    # d = 1/t^2 - (1 + cos t) / (2 t sin t); Taylor: 1/12 + t^2/720 + t^4/30240.
+    d = torch.where(
+        small,
+        1.0 / 12.0 + theta2 / 720.0 + theta2**2 / 30240.0,
+        1.0 / theta**2 - (1.0 + torch.cos(theta)) / (2.0 * theta * torch.sin(theta)),
+    )
+    k = hat(phi)
+    return _eye_like(phi) + 0.5 * k + d[..., None, None] * (k @ k)
+
+
+def so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
+    """Inverse left Jacobian ``J_l^{-1}(phi) = J_r^{-1}(-phi)``."""
+    return so3_right_jacobian_inv(-phi)

@@ -1,0 +1,1 @@
+"""Thin rclpy nodes, the launcher and bag replay around vigs_core."""
