@@ -1,0 +1,191 @@
+"""Sim(3) pose-graph optimisation (the relative-pose part of VIGS-SLAM's PGBA, Sec. 3.1).
+
+Nodes are keyframe similarities ``S_i = T_WC_i`` (world from camera, with a per-keyframe scale so scale
+drift can be corrected). An edge ``(i, j)`` measures the relative similarity ``Z_ij ~ S_i^{-1} S_j``
+with a 7x7 information matrix ``Lambda_ij`` (tangent order ``(rho, phi, sigma)``). The cost is
+
+    E = sum_ij  rho_h( r_ij^T Lambda_ij r_ij ),   r_ij = Log(Z_ij^{-1} S_i^{-1} S_j)   (in R^7)
+
+with an optional Huber ``rho_h`` on loop edges. With left perturbations ``S_k <- Exp(d_k) S_k`` and
+``E_ij = Z_ij^{-1} S_i^{-1} S_j``:
+
+    d r_ij / d d_j =  J_l^{-1}(r_ij) Ad((S_i Z_ij)^{-1}),     d r_ij / d d_i = -d r_ij / d d_j
+
+(because ``Z^{-1} S_i^{-1} Exp(d) S_j = Exp(Ad_{(S_i Z)^{-1}} d) E``). Levenberg-Marquardt on the dense
+7N x 7N normal equations (N is a few hundred keyframes at most, so a dense Cholesky is cheap); fixed
+nodes (the gauge) are removed from the system.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from vigs_core.geometry import sim3_adjoint, sim3_exp, sim3_inverse, sim3_left_jacobian_inv, sim3_log
+
+
+@dataclass
+class PoseGraphConfig:
+    """Settings of :func:`optimize_pose_graph`.
+
+    Args:
+        max_iterations: LM iterations at most.
+        initial_damping: LM damping ``lambda`` added as ``lambda * diag(H)`` (Marquardt scaling).
+        huber_delta: Huber threshold on the whitened residual norm of edges marked robust; ``0`` disables.
+        tolerance: stop when the relative cost decrease falls below this.
+    """
+
+    max_iterations: int = 30
+    initial_damping: float = 1e-4
+    huber_delta: float = 3.0
+    tolerance: float = 1e-10
+
+
+@dataclass
+class PoseGraph:
+    """A Sim(3) pose graph.
+
+    Attributes:
+        poses: (N, 4, 4) float64 node similarities ``S_i``.
+        edges_i, edges_j: (E,) int64 node indices of each edge.
+        measurements: (E, 4, 4) relative similarities ``Z_ij``.
+        information: (E, 7, 7) information matrices ``Lambda_ij``.
+        robust: (E,) bool, edges whose cost gets the Huber kernel (loop edges).
+        fixed: node indices held constant (at least one, to fix the gauge).
+    """
+
+    poses: torch.Tensor
+    edges_i: torch.Tensor
+    edges_j: torch.Tensor
+    measurements: torch.Tensor
+    information: torch.Tensor
+    robust: torch.Tensor | None = None
+    fixed: list[int] = field(default_factory=lambda: [0])
+
+    def __post_init__(self) -> None:
+        n, e = self.poses.shape[0], self.edges_i.shape[0]
+        if self.poses.shape[1:] != (4, 4):
+            raise ValueError(f"poses must be (N, 4, 4), got {tuple(self.poses.shape)}")
+        for name, t, shape in (
+            ("edges_j", self.edges_j, (e,)),
+            ("measurements", self.measurements, (e, 4, 4)),
+            ("information", self.information, (e, 7, 7)),
+        ):
+            if tuple(t.shape) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        if e and (min(self.edges_i.min(), self.edges_j.min()) < 0 or max(self.edges_i.max(), self.edges_j.max()) >= n):
+            raise ValueError(f"edge indices must lie in [0, {n})")
+        if not self.fixed:
+            raise ValueError("at least one node must be fixed to remove the Sim(3) gauge freedom")
+        if self.robust is None:
+            self.robust = torch.zeros(e, dtype=torch.bool)
+
+    @staticmethod
+    def relative(poses: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+        """Relative similarities ``S_i^{-1} S_j`` (E, 4, 4) of node pairs."""
+        return sim3_inverse(poses[i]) @ poses[j]
+
+
+@dataclass
+class PoseGraphResult:
+    """Outcome of :func:`optimize_pose_graph`: optimised poses and the cost history."""
+
+    poses: torch.Tensor
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    costs: list[float]
+
+
+def _residuals(graph: PoseGraph, poses: torch.Tensor) -> torch.Tensor:
+    err = sim3_inverse(graph.measurements) @ PoseGraph.relative(poses, graph.edges_i, graph.edges_j)
+    return sim3_log(err)
+
+
+def _robust_weights(graph: PoseGraph, r: torch.Tensor, huber_delta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-edge IRLS weights and robust costs: Huber on the whitened norm ``m = sqrt(r^T L r)``."""
+    m2 = torch.einsum("ea,eab,eb->e", r, graph.information, r)
+    weights = torch.ones_like(m2)
+    costs = m2.clone()
+    if huber_delta > 0:
+        m = m2.clamp_min(1e-300).sqrt()
+        outer = graph.robust & (m > huber_delta)
+        weights = torch.where(outer, huber_delta / m, weights)
+        costs = torch.where(outer, 2 * huber_delta * m - huber_delta**2, costs)
+    return weights, costs
+
+
+def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None) -> PoseGraphResult:
+    """Minimise the pose-graph cost by Levenberg-Marquardt; returns new poses (input is not modified)."""
+    config = config or PoseGraphConfig()
+    poses = graph.poses.to(torch.float64).clone()
+    n = poses.shape[0]
+    free = torch.ones(n, dtype=torch.bool)
+    free[graph.fixed] = False
+    # Column offset of each free node in the reduced system (-1 for fixed nodes).
+    offset = torch.full((n,), -1, dtype=torch.int64)
+    offset[free] = torch.arange(int(free.sum())) * 7
+    dim = int(free.sum()) * 7
+    damping = config.initial_damping
+
+    r = _residuals(graph, poses)
+    w, c = _robust_weights(graph, r, config.huber_delta)
+    cost = float(c.sum())
+    costs = [cost]
+    it = 0
+    for it in range(1, config.max_iterations + 1):
+        jl_inv = sim3_left_jacobian_inv(r)
+        adj = sim3_adjoint(sim3_inverse(poses[graph.edges_i] @ graph.measurements))
+        jj = jl_inv @ adj  # (E, 7, 7), d r / d d_j
+        info = w[:, None, None] * graph.information
+        h = torch.zeros(dim, dim, dtype=torch.float64)
+        b = torch.zeros(dim, dtype=torch.float64)
+        blocks = {"i": -jj, "j": jj}
+        idx = {"i": graph.edges_i, "j": graph.edges_j}
+        for a in ("i", "j"):
+            ja = blocks[a]
+            ga = (ja.transpose(-1, -2) @ info @ r[..., None])[..., 0]
+            _scatter_vector(b, offset[idx[a]], ga)
+            for bb in ("i", "j"):
+                hab = ja.transpose(-1, -2) @ info @ blocks[bb]
+                _scatter_block(h, offset[idx[a]], offset[idx[bb]], hab)
+        if dim == 0:
+            break
+        while True:
+            damped = h + damping * torch.diag(h.diagonal().clamp_min(1e-12))
+            step = -torch.linalg.solve(damped, b)
+            trial = poses.clone()
+            trial[free] = sim3_exp(step.view(-1, 7)) @ poses[free]
+            r_trial = _residuals(graph, trial)
+            w_trial, c_trial = _robust_weights(graph, r_trial, config.huber_delta)
+            new_cost = float(c_trial.sum())
+            if new_cost < cost:
+                poses, r, w = trial, r_trial, w_trial
+                damping = max(damping / 10.0, 1e-12)
+                break
+            damping *= 10.0
+            if damping > 1e12:
+                break
+        decrease = (cost - new_cost) / max(cost, 1e-300) if new_cost < cost else 0.0
+        cost = min(cost, new_cost)
+        costs.append(cost)
+        if decrease < config.tolerance:
+            break
+    return PoseGraphResult(poses=poses, initial_cost=costs[0], final_cost=cost, iterations=it, costs=costs)
+
+
+def _scatter_vector(b: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> None:
+    """``b[rows[e] : rows[e] + 7] += values[e]`` for edges whose node is free (rows >= 0)."""
+    keep = rows >= 0
+    index = (rows[keep, None] + torch.arange(7)).reshape(-1)
+    b.index_add_(0, index, values[keep].reshape(-1))
+
+
+def _scatter_block(h: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor, blocks: torch.Tensor) -> None:
+    """``h[rows[e]:+7, cols[e]:+7] += blocks[e]`` for edges whose two nodes are free."""
+    keep = (rows >= 0) & (cols >= 0)
+    ar = torch.arange(7)
+    r_idx = (rows[keep, None, None] + ar[None, :, None]).expand(-1, 7, 7)
+    c_idx = (cols[keep, None, None] + ar[None, None, :]).expand(-1, 7, 7)
+    flat = (r_idx * h.shape[1] + c_idx).reshape(-1)
+    h.view(-1).index_add_(0, flat, blocks[keep].reshape(-1))
