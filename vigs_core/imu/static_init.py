@@ -1,0 +1,117 @@
+"""Static-segment detection and static IMU initialisation (gravity direction, gyro bias).
+
+A window of samples is static when the per-axis standard deviations of both the gyro and the
+accelerometer stay under thresholds (norm over the axes). The defaults are absolute values that
+tolerate the vibration of a multirotor standing with its motors on (EuRoC: about 0.02 rad/s and
+0.3 m/s^2 standing, 0.1 rad/s and 1.5 m/s^2 in flight), not multiples of the white-noise density.
+
+On a static segment the gyro measures only its bias and the accelerometer only the reaction to
+gravity (``a = R_wb^T (0, 0, |g|) + b_a``), so (OpenVINS-style static initialisation)::
+
+    b_g = mean(w),   |g| ~= |mean(a)|,   R_wb = the minimal rotation taking mean(a)/|mean(a)| to +z
+
+(yaw is unobservable and set by the minimal rotation; the accelerometer bias is not separable from
+gravity here and is left to the inertial-only stage).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from vigs_core.imu.residual import gravity_rotation
+from vigs_core.types import ImuSamples
+
+
+@dataclass
+class StaticDetectorConfig:
+    """Settings of :func:`detect_static_segments`.
+
+    Args:
+        window_s: sliding-window length (s).
+        gyro_std_max: largest norm of the per-axis gyro standard deviations of a static window (rad/s).
+        acc_std_max: same for the accelerometer (m/s^2).
+        min_duration_s: shortest static segment reported (s).
+    """
+
+    window_s: float = 0.5
+    gyro_std_max: float = 0.05
+    acc_std_max: float = 0.6
+    min_duration_s: float = 1.0
+
+
+@dataclass
+class StaticInit:
+    """Result of a static initialisation.
+
+    Attributes:
+        t0_ns, t1_ns: the segment used (ns).
+        R_wb: (3, 3) float64 body attitude in a gravity-aligned world (z up, yaw from the minimal rotation).
+        bias_gyro: (3,) rad/s, mean gyro over the segment.
+        gravity_magnitude: ``|mean(acc)|`` (m/s^2).
+        gyro_std: (3,) per-axis gyro standard deviation (rad/s); acc_std: (3,) (m/s^2).
+        n_samples: samples used.
+    """
+
+    t0_ns: int
+    t1_ns: int
+    R_wb: torch.Tensor
+    bias_gyro: torch.Tensor
+    gravity_magnitude: float
+    gyro_std: np.ndarray
+    acc_std: np.ndarray
+    n_samples: int
+
+
+def _windowed_std(values: np.ndarray, n: int) -> np.ndarray:
+    """(N, 3) -> (N - n + 1,) norm of the per-axis standard deviations over windows of n samples."""
+    c1 = np.cumsum(np.concatenate((np.zeros((1, 3)), values)), axis=0)
+    c2 = np.cumsum(np.concatenate((np.zeros((1, 3)), values**2)), axis=0)
+    mean = (c1[n:] - c1[:-n]) / n
+    var = np.maximum((c2[n:] - c2[:-n]) / n - mean**2, 0.0)
+    return np.sqrt(var.sum(axis=1))
+
+
+def detect_static_segments(imu: ImuSamples, config: StaticDetectorConfig | None = None) -> np.ndarray:
+    """Static segments of a (sorted) IMU stream.
+
+    Returns:
+        (S, 2) int64 ``(start_ns, end_ns)`` of the maximal runs of samples covered by static windows,
+        at least ``min_duration_s`` long.
+    """
+    cfg = config or StaticDetectorConfig()
+    if len(imu) < 3:
+        return np.zeros((0, 2), np.int64)
+    period = float(np.median(np.diff(imu.t_ns))) * 1e-9
+    n = max(int(round(cfg.window_s / period)), 2)
+    if len(imu) < n:
+        return np.zeros((0, 2), np.int64)
+    still = (_windowed_std(imu.gyro, n) < cfg.gyro_std_max) & (_windowed_std(imu.acc, n) < cfg.acc_std_max)
+    covered = np.zeros(len(imu) + 1, np.int64)  # difference array: samples covered by a static window
+    starts = np.flatnonzero(still)
+    np.add.at(covered, starts, 1)
+    np.add.at(covered, starts + n, -1)
+    mask = np.cumsum(covered[:-1]) > 0
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    segments = [(imu.t_ns[a], imu.t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+    keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= cfg.min_duration_s]
+    return np.array(keep, dtype=np.int64).reshape(-1, 2)
+
+
+def static_initialize(imu: ImuSamples, t0_ns: int, t1_ns: int) -> StaticInit:
+    """Gyro bias, gravity magnitude and gravity-aligned attitude from samples in ``[t0_ns, t1_ns]``."""
+    m = (imu.t_ns >= t0_ns) & (imu.t_ns <= t1_ns)
+    n = int(m.sum())
+    if n < 10:
+        raise ValueError(f"static initialisation needs at least 10 samples in [{t0_ns}, {t1_ns}] ns, got {n}")
+    gyro, acc = imu.gyro[m], imu.acc[m]
+    a_mean = acc.mean(axis=0)
+    up_body = torch.as_tensor(a_mean / np.linalg.norm(a_mean))
+    # R_wb maps up_body to +z: R_wb = gravity_rotation(-up_body)^T since gravity_rotation maps -z -> dir.
+    R_wb = gravity_rotation(-up_body).T
+    return StaticInit(
+        t0_ns=int(t0_ns), t1_ns=int(t1_ns), R_wb=R_wb, bias_gyro=torch.as_tensor(gyro.mean(axis=0)),
+        gravity_magnitude=float(np.linalg.norm(a_mean)), gyro_std=gyro.std(axis=0), acc_std=acc.std(axis=0),
+        n_samples=n,
+    )
