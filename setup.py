@@ -22,6 +22,10 @@ setup(
     entry_points={
         "console_scripts": [
             "vigs = vigs_cli.main:main",
+            "vigs_imu_preintegration = vigs_ros.imu_preintegration_node:main",
+            "vigs_frontend = vigs_ros.frontend_node:main",
+            "vigs_mapper = vigs_ros.mapper_node:main",
+            "vigs_loop_detector = vigs_ros.loop_detector_node:main",
         ],
     },
 )

@@ -1,16 +1,17 @@
 #!/usr/bin/env bash
 # Creates or refreshes .venv at the repository root and installs everything VIGS-ROS needs.
 #
-# The venv is rebuilt when it is missing or stale: the stamp .venv/.vigs-setup holds a hash of the
-# requirement files, setup.py, package.xml and this script; when it matches, set-up does nothing
-# but a quick editable re-install check, so re-running is fast.
+# The venv is refreshed when it is missing or stale: the stamp .venv/.vigs-setup holds a hash of the
+# requirement files, setup.py, package.xml, the interface packages and the set-up scripts; when it
+# matches, set-up does nothing, so re-running is fast.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 VENV="$ROOT/.venv"
 PY=${PYTHON:-python3}
 STAMP="$VENV/.vigs-setup"
-hash=$(cat requirements/*.txt setup.py package.xml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+hash=$(cat requirements/*.txt setup.py package.xml scripts/setup.sh scripts/build_interfaces.sh \
+  $(find interfaces -type f | sort) | sha256sum | cut -d' ' -f1)
 
 if [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$hash" ]]; then
   exit 0
@@ -23,7 +24,8 @@ fi
 echo "[setup] installing pinned dependencies (torch 2.13.0 CPU via requirements/constraints.txt)"
 "$VENV/bin/python" -m pip install --quiet --upgrade pip
 "$VENV/bin/python" -m pip install --quiet -c requirements/constraints.txt \
-  -r requirements/runtime.txt -r requirements/test.txt
+  -r requirements/runtime.txt -r requirements/test.txt -r requirements/build.txt
+bash scripts/build_interfaces.sh
 echo "[setup] installing the project (editable)"
 "$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e .
 echo "$hash" > "$STAMP"

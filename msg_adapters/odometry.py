@@ -1,0 +1,106 @@
+"""``nav_msgs/Odometry`` and ``nav_msgs/Path`` <-> poses and :class:`vigs_core.types.Trajectory`.
+
+Odometry (REP-105): ``pose`` is ``T_frame_child`` in ``header.frame_id`` (e.g. ``odom`` or ``map``);
+``twist`` is expressed in ``child_frame_id`` (the body), so a world-frame velocity ``v_w`` is sent as
+``v_b = R_wb^T v_w``. Covariances are 6x6 row-major over (x, y, z, rot x, rot y, rot z).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from msg_adapters.common import (
+    field,
+    finite_array,
+    header_stamp_ns,
+    make_header,
+    matrix_to_quat_xyzw,
+    numeric,
+    pose_msg,
+    pose_to_matrix,
+    quat_xyzw_to_matrix,
+    read_vector3,
+    vector3,
+)
+from msg_adapters.types import MessageTypes
+from vigs_core.types import Trajectory
+
+
+def pose_to_odometry(types: MessageTypes, t_ns: int, T, frame_id: str, child_frame_id: str,
+                     velocity_world=None, angular_velocity_body=None, pose_covariance=None,
+                     twist_covariance=None):
+    """A ``nav_msgs/Odometry`` for pose ``T`` (4, 4) of ``child_frame_id`` in ``frame_id``.
+
+    Args:
+        velocity_world: (3,) linear velocity in ``frame_id`` (m/s), rotated into the body for ``twist``.
+        angular_velocity_body: (3,) angular velocity in the body (rad/s).
+        pose_covariance, twist_covariance: (6, 6) covariances; default zero (unknown).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    pose = pose_msg(types, T)
+    v_b = np.zeros(3) if velocity_world is None else T[:3, :3].T @ finite_array(velocity_world, (3,), "velocity")
+    w_b = np.zeros(3) if angular_velocity_body is None else finite_array(angular_velocity_body, (3,), "angular")
+    pc = np.zeros(36) if pose_covariance is None else finite_array(pose_covariance, (6, 6), "pose_covariance")
+    tc = np.zeros(36) if twist_covariance is None else finite_array(twist_covariance, (6, 6), "twist_covariance")
+    return types.new(
+        "nav_msgs/msg/Odometry",
+        header=make_header(types, t_ns, frame_id),
+        child_frame_id=str(child_frame_id),
+        pose=types.new("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=pc.reshape(-1)),
+        twist=types.new(
+            "geometry_msgs/msg/TwistWithCovariance",
+            twist=types.new("geometry_msgs/msg/Twist", linear=vector3(types, v_b), angular=vector3(types, w_b)),
+            covariance=tc.reshape(-1),
+        ),
+    )
+
+
+def odometry_to_pose(msg) -> dict:
+    """Fields of an Odometry message as numpy: ``t_ns``, ``frame_id``, ``child_frame_id``, ``T`` (4, 4),
+    ``velocity_world`` (3,) (the body twist rotated into ``frame_id``), ``angular_velocity_body`` (3,),
+    ``pose_covariance`` (6, 6), ``twist_covariance`` (6, 6)."""
+    t_ns = header_stamp_ns(msg, "Odometry")
+    pose_cov = field(msg, "pose", "Odometry")
+    twist_cov = field(msg, "twist", "Odometry")
+    T = pose_to_matrix(field(pose_cov, "pose", "Odometry.pose"), "Odometry.pose.pose")
+    twist = field(twist_cov, "twist", "Odometry.twist")
+    v_b = read_vector3(field(twist, "linear", "Odometry.twist"), "Odometry.twist.linear")
+    w_b = read_vector3(field(twist, "angular", "Odometry.twist"), "Odometry.twist.angular")
+    return {
+        "t_ns": t_ns,
+        "frame_id": str(msg.header.frame_id),
+        "child_frame_id": str(field(msg, "child_frame_id", "Odometry")),
+        "T": T,
+        "velocity_world": T[:3, :3] @ v_b,
+        "angular_velocity_body": w_b,
+        "pose_covariance": finite_array(numeric(pose_cov.covariance, np.float64, "cov"), (6, 6), "pose covariance"),
+        "twist_covariance": finite_array(numeric(twist_cov.covariance, np.float64, "cov"), (6, 6), "twist covariance"),
+    }
+
+
+def trajectory_to_path(types: MessageTypes, traj: Trajectory, frame_id: str, t_ns: int | None = None):
+    """A ``nav_msgs/Path`` of a trajectory (one PoseStamped per pose); header stamp = ``t_ns`` or the
+    last pose's stamp (0 for an empty trajectory)."""
+    poses = []
+    for t, p, q in zip(traj.t_ns, traj.position, traj.quat_wxyz):
+        T = np.eye(4)
+        T[:3, :3] = quat_xyzw_to_matrix(np.array([q[1], q[2], q[3], q[0]]))
+        T[:3, 3] = p
+        poses.append(types.new("geometry_msgs/msg/PoseStamped", header=make_header(types, int(t), frame_id),
+                               pose=pose_msg(types, T)))
+    stamp = t_ns if t_ns is not None else (int(traj.t_ns[-1]) if len(traj) else 0)
+    return types.new("nav_msgs/msg/Path", header=make_header(types, stamp, frame_id), poses=poses)
+
+
+def path_to_trajectory(msg) -> Trajectory:
+    """Trajectory of a Path (stamps from each PoseStamped's header)."""
+    poses = field(msg, "poses", "Path")
+    t = np.zeros(len(poses), np.int64)
+    pos = np.zeros((len(poses), 3))
+    quat = np.zeros((len(poses), 4))
+    for i, ps in enumerate(poses):
+        t[i] = header_stamp_ns(ps, f"Path.poses[{i}]")
+        T = pose_to_matrix(field(ps, "pose", f"Path.poses[{i}]"), f"Path.poses[{i}].pose")
+        pos[i] = T[:3, 3]
+        x, y, z, w = matrix_to_quat_xyzw(T[:3, :3])
+        quat[i] = (w, x, y, z)
+    return Trajectory(t, pos, quat)

@@ -1,0 +1,146 @@
+"""ROS-side helpers without a graph: REP-105 frames, IMU buffering and frame synchronisation, parameter files
+(every shipped key is declared by its node), remap parsing."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from vigs_core.geometry import se3_exp
+from vigs_ros.frames import Rep105Frames, body_from_camera, camera_from_body, invert, matrix_from_param
+from vigs_ros.params import dataclass_specs, default_params_files, load_params_file, nested
+from vigs_ros.replay import parse_remaps
+from vigs_ros.time_sync import FrameSynchronizer, ImuBuffer, ImuBufferConfig
+
+
+def pose(seed: int, scale: float = 1.0) -> np.ndarray:
+    g = torch.Generator().manual_seed(seed)
+    return se3_exp(scale * torch.randn(6, generator=g, dtype=torch.float64)).numpy()
+
+
+def test_invert_and_extrinsics():
+    T, T_bc = pose(0), pose(1)
+    np.testing.assert_allclose(T @ invert(T), np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(camera_from_body(body_from_camera(T, T_bc), T_bc), T, atol=1e-12)
+
+
+def test_rep105_odom_is_continuous_across_a_correction():
+    frames = Rep105Frames()
+    step = pose(2, 0.05)
+    T = np.eye(4)
+    odoms = []
+    for _ in range(3):
+        T = T @ step
+        T_map_odom, T_odom_base = frames.update(T)
+        np.testing.assert_allclose(T_map_odom, np.eye(4))
+        odoms.append(T_odom_base)
+    jump = pose(3, 0.5)  # a loop closure moves the map estimate
+    frames.mark_correction()
+    T_corrected = jump @ T @ step
+    T_map_odom, T_odom_base = frames.update(T_corrected, T_map_base_before_correction=T @ step)
+    np.testing.assert_allclose(T_odom_base, odoms[-1] @ step, atol=1e-12)  # odom moved only by the motion
+    np.testing.assert_allclose(T_map_odom @ T_odom_base, T_corrected, atol=1e-12)  # map is corrected
+    np.testing.assert_allclose(T_map_odom, jump, atol=1e-12)
+
+
+def test_matrix_from_param_validates():
+    T = matrix_from_param(list(pose(4).reshape(-1)), "T")
+    assert T.shape == (4, 4)
+    with pytest.raises(ValueError, match="expected 16 numbers"):
+        matrix_from_param([1.0] * 15, "T_body_camera")
+    with pytest.raises(ValueError, match="not a rigid transform"):
+        matrix_from_param([2.0] + [0.0] * 15, "T_body_camera")
+
+
+def test_imu_buffer_rejects_disorder_reports_gaps_and_brackets():
+    buf = ImuBuffer(ImuBufferConfig(nominal_rate_hz=200.0, gap_factor=2.5, max_age_s=1.0))
+    assert buf.add(0, np.zeros(3), np.zeros(3)) is None
+    assert buf.add(5_000_000, np.ones(3), np.zeros(3)) is None
+    assert "older than the previous" in buf.add(4_000_000, np.zeros(3), np.zeros(3))
+    assert "duplicates" in buf.add(5_000_000, np.zeros(3), np.zeros(3))
+    assert "IMU gap of 20.0 ms" in buf.add(25_000_000, np.zeros(3), np.zeros(3))
+    for k in range(6, 20):
+        buf.add(k * 5_000_000, np.full(3, k), np.zeros(3))
+    assert len(buf) == 17 and buf.covers(95_000_000) and not buf.covers(95_000_001)
+    s = buf.samples(32_000_000, 41_000_000)
+    np.testing.assert_array_equal(s.t_ns, [30_000_000, 35_000_000, 40_000_000, 45_000_000])
+    buf.add(2_000_000_000, np.zeros(3), np.zeros(3))  # older than max_age_s behind the newest: dropped
+    assert buf.earliest_ns == 95_000_000
+
+
+def test_frame_synchronizer_waits_for_imu_and_applies_offset():
+    imu = ImuBuffer()
+    sync = FrameSynchronizer(time_offset_ns=2_000_000, max_pending=3, max_wait_ns=200_000_000)
+    assert sync.push(100_000_000, "a") is None
+    assert sync.push(150_000_000, "b") is None
+    assert "not newer" in sync.push(150_000_000, "c")
+    assert sync.release(imu) == []
+    imu.add(101_000_000, np.zeros(3), np.zeros(3))
+    assert sync.release(imu) == []  # a needs IMU up to 102 ms (offset)
+    imu.add(105_000_000, np.zeros(3), np.zeros(3))
+    assert sync.release(imu) == [(102_000_000, "a", True)]
+    assert sync.push(400_000_000, "d") is None  # b waited 250 ms > max_wait: released incomplete
+    assert sync.release(imu) == [(152_000_000, "b", False)]
+    remarks = [sync.push(500_000_000 + k, k) for k in range(4)]
+    assert remarks[:2] == [None, None] and "dropped the oldest (400000000 ns)" in remarks[2]
+
+
+def test_load_params_file_layout(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("/**:\n  ros__parameters:\n    a: 1\n    b: x\nnode:\n  ros__parameters:\n    a: 2\n"
+                 "    nested:\n      c: [1, 2]\nother:\n  ros__parameters:\n    a: 3\n")
+    assert load_params_file(f, "node") == {"a": 2, "b": "x", "nested.c": [1, 2]}
+    f.write_text("node:\n  a: 1\n")
+    with pytest.raises(ValueError, match="ros__parameters"):
+        load_params_file(f, "node")
+
+
+def test_shipped_params_only_use_declared_names():
+    """Every key a shipped file sets for a node is a parameter the node declares (catches typos)."""
+    from vigs_ros import frontend_node, imu_preintegration_node, loop_detector_node, mapper_node
+
+    modules = [imu_preintegration_node, frontend_node, mapper_node, loop_detector_node]
+    all_declared = set().union(*({p.name for p in m.PARAMS} for m in modules))
+    for module in modules:
+        declared = {p.name for p in module.PARAMS}
+        for f in default_params_files():
+            for key, value in load_params_file(f, module.NODE_NAME).items():
+                section_is_wildcard = key not in declared
+                if section_is_wildcard:  # /** keys must be declared by some node
+                    assert key in all_declared, f"{f.name}: {key} is declared by no node"
+                    continue
+                default = next(p.default for p in module.PARAMS if p.name == key)
+                assert isinstance(value, type(default)) or (isinstance(default, float) and isinstance(value, int)), \
+                    f"{f.name}: {module.NODE_NAME}.{key} = {value!r} but the default is {default!r}"
+    names = [f.name for f in default_params_files()]
+    assert names[0] == "ros.yaml" and {"imu_preintegration.yaml", "mapper.yaml", "loop_detector.yaml"} <= set(names)
+
+
+def test_dataclass_specs_recurse_and_nest():
+    from dataclasses import dataclass, field
+
+    @dataclass
+    class Inner:
+        preset: str = "fast"
+        sigma: float = 1.0
+
+    @dataclass
+    class Cfg:
+        a: int = 3
+        b: tuple = (1.0, 2.0)
+        c: dict = field(default_factory=dict)
+        d: float | None = None
+        inner: Inner = field(default_factory=Inner)
+        skipped: int = 1
+
+    specs = dataclass_specs(Cfg, "x.", skip=("skipped",))
+    assert [(s.name, s.default, s.dynamic_typing) for s in specs] == [
+        ("x.a", 3, True), ("x.b", [1.0, 2.0], True), ("x.inner.preset", "fast", False), ("x.inner.sigma", 1.0, True)]
+    values = {s.name: s.default for s in specs} | {"y.z": 0}
+    assert nested(values, "x.") == {"a": 3, "b": [1.0, 2.0], "inner": {"preset": "fast", "sigma": 1.0}}
+
+
+def test_parse_remaps():
+    assert parse_remaps(["/a:=/b", "/c:=/d"]) == {"/a": "/b", "/c": "/d"}
+    with pytest.raises(ValueError, match="must look like"):
+        parse_remaps(["/a=/b"])

@@ -1,0 +1,153 @@
+"""The launcher: starts node processes (or one composed process), shuts them down cleanly on SIGINT/SIGTERM,
+returns non-zero when a node dies, and ends the graph after a bag replay."""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+from ros_bags import rosbags_types, write_ros2_bag
+from ros_helpers import isolated_env, ros_context  # noqa: F401  (ros_context is a fixture)
+
+from msg_adapters.imu import sample_to_imu
+from vigs_ros.launch import LaunchConfig, Supervisor, bag_input_remaps, commands
+
+
+class Launched:
+    """``vigs launch ARGS`` in a subprocess, its output collected line by line."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", *args], env=isolated_env(),
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
+                                       daemon=True)
+        self.reader.start()
+
+    def child_pids(self) -> dict[str, int]:
+        return {m.group(1): int(m.group(2)) for line in self.lines
+                if (m := re.match(r"\[launch\] started (\S+) \(pid (\d+)\)", line))}
+
+    def wait(self, timeout: float = 60.0) -> int:
+        rc = self.proc.wait(timeout)
+        self.reader.join(5.0)
+        return rc
+
+    @property
+    def output(self) -> str:
+        return "".join(self.lines)
+
+
+def wait_for_nodes(context, names: set[str], timeout_s: float = 60.0) -> bool:
+    from rclpy.node import Node
+
+    probe = Node("launch_probe", context=context)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if names <= set(probe.get_node_names()):
+                return True
+            time.sleep(0.1)
+        return False
+    finally:
+        probe.destroy_node()
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by its parent) counts as dead
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_commands_pass_params_and_sim_time(tmp_path):
+    extra = tmp_path / "extra.yaml"
+    extra.write_text("frontend:\n  ros__parameters:\n    width: 188\n")
+    cmds = commands(LaunchConfig(bag="b", params=[str(extra)], nodes=["frontend", "mapper"]))
+    assert list(cmds) == ["frontend", "mapper", "replay"]
+    args = cmds["frontend"]
+    files = [args[i + 1] for i, a in enumerate(args) if a == "--params-file"]
+    assert files[0].endswith("ros.yaml") and files[-1] == str(extra)
+    assert args[-2:] == ["-p", "use_sim_time:=true"]
+    composed = commands(LaunchConfig(composed=True, nodes=["mapper", "loop_detector"]))
+    assert list(composed) == ["graph"] and composed["graph"][2:5] == ["vigs_ros.graph", "mapper", "loop_detector"]
+
+
+def test_bag_input_remaps_by_message_type(tmp_path):
+    from msg_adapters.image import numpy_to_compressed
+
+    types = rosbags_types()
+    img = numpy_to_compressed(types, np.zeros((4, 4), np.uint8), "mono8", 5, "cam0")
+    imu = sample_to_imu(types, 5, np.zeros(3), [0, 0, 9.81])
+    bag = write_ros2_bag(tmp_path / "bag", [("/cam0/image_raw/compressed", "sensor_msgs/msg/CompressedImage", 5, img),
+                                            ("/imu0", "sensor_msgs/msg/Imu", 5, imu)])
+    remaps, ros_args = bag_input_remaps(bag)
+    assert remaps == ["/cam0/image_raw/compressed:=/image", "/imu0:=/imu"]
+    assert ros_args == ["-p", "image_transport:=compressed"]
+
+
+CHILD = """
+import signal, sys, time
+ignore = len(sys.argv) > 1
+if ignore:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+print("ready", flush=True)
+try:
+    while True:
+        time.sleep(0.02)
+except KeyboardInterrupt:
+    sys.exit(0)
+"""
+
+
+def test_supervisor_forwards_signals_and_escalates():
+    """A SIGINT to the launcher reaches every child as SIGINT; one that ignores it is escalated (SIGTERM)."""
+    sup = Supervisor(shutdown_timeout_s=1.0)
+    sup.start("polite", [sys.executable, "-c", CHILD])
+    sup.start("stubborn", [sys.executable, "-c", CHILD, "ignore"])
+    time.sleep(0.5)
+    threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    rc = sup.run()
+    assert sup.procs["polite"].returncode == 0
+    assert sup.procs["stubborn"].returncode == -signal.SIGTERM
+    assert rc == 1  # the stubborn child did not exit cleanly
+
+
+def test_launch_returns_nonzero_when_a_node_dies_and_stops_the_rest(ros_context):
+    run = Launched("--nodes", "imu_preintegration", "loop_detector")
+    try:
+        assert wait_for_nodes(ros_context, {"imu_preintegration", "loop_detector"}), run.output
+        pids = run.child_pids()
+        os.kill(pids["loop_detector"], signal.SIGKILL)
+        assert run.wait() != 0
+    finally:
+        run.proc.kill()
+    assert "loop_detector exited unexpectedly" in run.output
+    assert "all processes exited cleanly" in run.output  # the surviving node shut down on SIGINT with code 0
+    assert not alive(pids["imu_preintegration"])
+
+
+def test_composed_launch_with_bag_ends_after_replay(tmp_path):
+    types = rosbags_types()
+    t0 = 1_000_000_000
+    msgs = [("/imu0", "sensor_msgs/msg/Imu", t0 + k * 5_000_000,
+             sample_to_imu(types, t0 + k * 5_000_000, np.zeros(3), [0, 0, 9.81])) for k in range(40)]
+    bag = write_ros2_bag(tmp_path / "bag", msgs)
+    run = Launched("--composed", "--nodes", "imu_preintegration", "--bag", str(bag), "--remap", "/imu0:=/imu",
+                   "--rate", "2", "--linger", "0.5")
+    try:
+        assert run.wait(90.0) == 0, run.output
+    finally:
+        run.proc.kill()
+    assert "[replay] 40 messages on 1 topics" in run.output
+    assert "replay finished" in run.output and "all processes exited cleanly" in run.output

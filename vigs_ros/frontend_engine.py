@@ -1,0 +1,179 @@
+"""The frontend node's computation, free of ROS: image preparation and the core odometry.
+
+:class:`FrontendEngine` prepares each image like ``vigs run`` does (:class:`vigs_core.system.Preprocessor`:
+undistort + resize to the processing resolution in one remap; grey) and runs the core odometry of
+:class:`vigs_core.system.PipelineConfig`: :class:`vigs_core.vio.odometry.VisualInertialOdometry` (the dense
+monocular front end with tightly coupled IMU fusion, VIGS-SLAM 3.1-3.3) when ``config.imu.enabled`` and an
+IMU buffer is given, else the vision-only :class:`vigs_core.frontend.DenseOdometry`.
+
+Streaming IMU: the VIO core takes the IMU record of the whole run at construction (as ``vigs run`` has it);
+here the record grows while running, so before each frame the estimator's record is replaced by the buffer's
+current samples (:func:`feed_imu`); the node processes a frame only once the buffer reaches its stamp.
+
+It reports per frame the camera pose, the keyframes created (with their inertial state), the keyframes whose
+pose moved (BA, world alignment at IMU initialisation), and whether the world was re-expressed (the
+gravity-aligned metric alignment: a discontinuity for REP-105's map frame). Poses: ``T_world_camera``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from msg_adapters.image import to_mono8
+from msg_adapters.vigs import KeyframeData
+from vigs_core.camera import CameraModel
+from vigs_core.frontend import DenseOdometry
+from vigs_core.loop import apply_to_odometry
+from vigs_core.solver import Intrinsics
+from vigs_core.system import PipelineConfig, Preprocessor
+from vigs_core.types import ImuNoise
+from vigs_core.vio.odometry import VisualInertialOdometry
+from vigs_ros.frames import invert
+from vigs_ros.time_sync import ImuBuffer
+
+
+@dataclass
+class KeyframeState:
+    """Inertial state of a keyframe: velocity (3,) m/s in the world, biases (3,) rad/s and m/s^2."""
+
+    velocity: np.ndarray
+    bias_gyro: np.ndarray
+    bias_acc: np.ndarray
+
+
+@dataclass
+class FrameOutput:
+    """Result of one frame: ``T_wc`` (4, 4) or None while initialising; new keyframes with their inertial
+    states; ``updated_keyframes`` {id: T_wc} of existing keyframes moved by more than the tolerance;
+    ``realigned``: the world was re-expressed (IMU initialisation); ``inertial_initialized``: the world is
+    metric and gravity-aligned; ``rotation_error``: the largest ``max|R^T R - I|`` of the core's poses before
+    projection onto SO(3) (a core that loses orthonormality is reported by the node, not hidden)."""
+
+    t_ns: int
+    T_wc: np.ndarray | None
+    new_keyframes: list[KeyframeData] = field(default_factory=list)
+    keyframe_states: dict[int, KeyframeState] = field(default_factory=dict)
+    updated_keyframes: dict[int, np.ndarray] = field(default_factory=dict)
+    realigned: bool = False
+    inertial_initialized: bool = False
+    rotation_error: float = 0.0
+
+
+def feed_imu(odometry: VisualInertialOdometry, imu: ImuBuffer) -> None:
+    """Give the VIO estimator (and its initialiser) the IMU samples received so far."""
+    samples = imu.all()
+    odometry.vio.imu = samples
+    odometry.vio.initializer.imu = samples
+
+
+class FrontendEngine:
+    """Preprocessing + core odometry (module docstring).
+
+    Args:
+        camera: the input camera (any distortion model).
+        config: pipeline settings (processing size, threads, odometry, IMU fusion).
+        T_bc: (4, 4) camera pose in the body (IMU) frame.
+        imu: the node's IMU buffer (None: vision-only).
+        noise: IMU noise densities.
+        pose_update_tolerance: a keyframe pose change (m, or Frobenius norm of the rotation difference) above
+            which an update is reported.
+    """
+
+    def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray, imu: ImuBuffer | None,
+                 noise: ImuNoise, pose_update_tolerance: float = 1e-6) -> None:
+        torch.set_num_threads(config.torch_threads)
+        cv2.setNumThreads(config.torch_threads)
+        self.pre = Preprocessor(camera, config.width, config.height)
+        self.camera = self.pre.camera
+        cam = self.camera
+        intr = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy)
+        self.imu = imu if config.imu.enabled else None
+        if self.imu is not None:
+            self.odometry = VisualInertialOdometry(intr, cam.width, cam.height, self.imu.all(), noise, T_bc,
+                                                   config.odometry, config.imu)
+        else:
+            self.odometry = DenseOdometry(intr, cam.width, cam.height, config.odometry)
+        self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
+        self.pose_update_tolerance = pose_update_tolerance
+        self._published: dict[int, np.ndarray] = {}
+        self._metric = False
+
+    @property
+    def inertial(self) -> bool:
+        return isinstance(self.odometry, VisualInertialOdometry)
+
+    def track(self, t_ns: int, image: np.ndarray, encoding: str) -> FrameOutput:
+        """Process one frame (input camera's size, mono8/rgb8/bgr8)."""
+        grey = self.pre(to_mono8(image, encoding))
+        if self.inertial:
+            feed_imu(self.odometry, self.imu)
+        T_cw = self.odometry.process(int(t_ns), grey)
+        out = FrameOutput(int(t_ns), None)
+        if T_cw is not None:
+            out.T_wc = self._rigid_inverse(T_cw.numpy(), out)
+        metric = self.inertial and self.odometry.vio.metric
+        out.realigned, out.inertial_initialized = metric and not self._metric, metric
+        self._metric = metric
+        for kf_id in sorted(self.odometry.keyframes):
+            kf = self.odometry.keyframes[kf_id]
+            T_wc = self._rigid_inverse(kf.pose.numpy(), out)
+            if kf_id not in self._published:
+                disparity = kf.disp.numpy().astype(np.float32).reshape(self.grid_shape)
+                out.new_keyframes.append(KeyframeData(kf_id, kf.t_ns, T_wc, kf.image, "mono8", self.camera,
+                                                      disparity))
+                out.keyframe_states[kf_id] = self.keyframe_state(kf_id)
+            elif _pose_distance(self._published[kf_id], T_wc) > self.pose_update_tolerance:
+                out.updated_keyframes[kf_id] = T_wc
+            self._published[kf_id] = T_wc
+        return out
+
+    def apply_corrections(self, poses: dict[int, np.ndarray], scales: dict[int, float]) -> int:
+        """Apply external keyframe corrections (loop closure: new ``T_WC`` (4, 4) and depth scale ``c`` per
+        keyframe id) through :func:`vigs_core.loop.apply_to_odometry`, as the in-process loop closure does:
+        the Sim(3) correction of keyframe ``k`` is ``C_k = S'_k T_WC,k^-1`` with ``S'_k = [c R', t']`` and
+        inertial velocities rotate with it. Returns how many keyframes were corrected."""
+        corrections = {}
+        for k, T_new in poses.items():
+            kf = self.odometry.keyframes.get(int(k))
+            if kf is None:
+                continue
+            S = torch.as_tensor(T_new, dtype=torch.float64).clone()
+            S[:3, :3] *= float(scales.get(k, 1.0))
+            corrections[int(k)] = S @ kf.pose.to(torch.float64)  # S' T_WC^-1, and kf.pose is T_cw = T_WC^-1
+        if not corrections:
+            return 0
+        updates = apply_to_odometry(self.odometry, corrections)
+        if self.inertial:
+            for k, C in corrections.items():
+                state = self.odometry.vio.states.get(k)
+                if state is not None:  # v' = c R_c v, with C[:3, :3] = c R_c
+                    state.velocity = C[:3, :3] @ state.velocity.to(torch.float64)
+        for k, (T_wc, _) in updates.items():
+            self._published[k] = T_wc.numpy()
+        return len(updates)
+
+    def keyframe_state(self, kf_id: int) -> KeyframeState:
+        """The keyframe's velocity and biases (zeros for the vision-only core)."""
+        if not self.inertial or kf_id not in self.odometry.vio.states:
+            return KeyframeState(np.zeros(3), np.zeros(3), np.zeros(3))
+        st = self.odometry.vio.states[kf_id]
+        b = self.odometry.vio.bias_of(kf_id).numpy()
+        return KeyframeState(st.velocity.numpy().copy(), b[:3].copy(), b[3:].copy())
+
+    @staticmethod
+    def _rigid_inverse(T_cw: np.ndarray, out: FrameOutput) -> np.ndarray:
+        """``T_wc``, with the rotation projected onto SO(3) (nearest rotation, SVD); records the deviation."""
+        R = T_cw[:3, :3]
+        out.rotation_error = max(out.rotation_error, float(np.abs(R.T @ R - np.eye(3)).max()))
+        u, _, vt = np.linalg.svd(R)
+        T = T_cw.copy()
+        T[:3, :3] = u @ vt
+        return invert(T)
+
+
+def _pose_distance(A: np.ndarray, B: np.ndarray) -> float:
+    """max(translation difference (m), rotation difference (Frobenius norm of R_A - R_B))."""
+    return max(float(np.linalg.norm(A[:3, 3] - B[:3, 3])), float(np.linalg.norm(A[:3, :3] - B[:3, :3])))

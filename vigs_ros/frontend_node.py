@@ -1,0 +1,349 @@
+"""Frontend node: images + camera info (+ preintegrated IMU) -> odometry, path, TF, keyframes, state.
+
+Computation: :class:`vigs_ros.frontend_engine.FrontendEngine`: the same preprocessing and core odometry as
+``vigs run`` (:class:`vigs_core.vio.odometry.VisualInertialOdometry`, dense monocular front end with tightly
+coupled IMU fusion; vision-only :class:`vigs_core.frontend.DenseOdometry` with ``imu.enabled: false`` or
+``sync_imu: false``). Settings: the :class:`vigs_core.system.PipelineConfig` fields as parameters (params/
+frontend.yaml: ``width``, ``height``, ``torch_threads``, ``frame_stride``, ``odometry.*``, ``imu.*``; loop
+closure runs in the loop_detector node, not here). Until the IMU initialisation succeeds the world is the first
+camera frame at an arbitrary scale; then it is metric and gravity-aligned (``inertial_initialized``), the
+map frame jumps once (REP-105: ``odom`` stays continuous) and every keyframe pose is updated.
+
+Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
+
+* in ``image_topic`` (sensor_msgs/Image, or sensor_msgs/CompressedImage when ``image_transport`` is
+  ``compressed``; sensor-data QoS). Encodings mono8, rgb8, bgr8; others are rejected with a warning.
+* in ``camera_info_topic`` (sensor_msgs/CameraInfo, sensor-data QoS): intrinsics and distortion
+  (plumb_bob, equidistant); frames wait for it, and its absence is reported as an error.
+* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS) when ``sync_imu``: frames are processed in stamp order
+  once the IMU reaches their stamp (+ ``time_offset_s``), at most ``max_imu_wait_s`` of frame time late
+  (:class:`vigs_ros.time_sync.FrameSynchronizer`); frames released without IMU coverage are reported.
+* in ``preintegrated_topic`` (vigs_msgs/PreintegratedImu): validated and counted in diagnostics (the VIO core
+  preintegrates from the raw IMU itself, so the IMU node's preintegrations serve other consumers).
+* in ``pose_update_topic`` (vigs_msgs/KeyframePoseUpdate): the loop detector's corrections (new poses and
+  depth scales), applied to the odometry as the in-process loop closure does
+  (:meth:`FrontendEngine.apply_corrections`); the map frame jumps, ``odom`` stays continuous (REP-105).
+* out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105);
+  ``path_topic`` (nav_msgs/Path, transient-local) of the frame poses in ``map_frame``;
+  ``/tf``: ``map_frame -> odom_frame -> base_frame``; ``/tf_static``: ``base_frame -> camera_frame``
+  (``T_body_camera``).
+* out ``keyframe_topic`` (vigs_msgs/Keyframe, transient-local, depth 20): image, disparity, pose, intrinsics;
+  ``keyframe_event_topic`` / ``state_topic`` (vigs_msgs/NavState) for the IMU node;
+  ``keyframe_update_topic`` (vigs_msgs/KeyframePoseUpdate) when BA moves earlier keyframes;
+  ``frame_done_topic`` (std_msgs/Header, one per consumed frame: replay ``--fast`` paces on it);
+  ``status_topic`` (diagnostics).
+"""
+from __future__ import annotations
+
+import sys
+import time
+import traceback
+
+import numpy as np
+from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
+from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
+from vigs_msgs.msg import Keyframe, KeyframePoseUpdate, NavState, PreintegratedImu
+
+from msg_adapters.camera_info import camera_info_to_model
+from msg_adapters.common import make_header, pose_msg, stamp_to_ns
+from msg_adapters.image import compressed_to_numpy, image_to_numpy
+from msg_adapters.imu import imu_to_sample
+from msg_adapters.odometry import pose_to_odometry
+from msg_adapters.tf import StampedTransform, tf_message
+from msg_adapters.types import RclpyTypes
+from msg_adapters.vigs import (
+    NavStateData,
+    PoseUpdateData,
+    keyframe_to_msg,
+    msg_to_pose_update,
+    msg_to_preintegration,
+    nav_state_to_msg,
+    pose_update_to_msg,
+)
+from vigs_core.camera import CameraModel
+from vigs_core.system import PipelineConfig
+from vigs_core.types import ImuNoise
+from vigs_ros.diagnostics import StatusReporter
+from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_param
+from vigs_ros.frontend_engine import FrontendEngine
+from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
+from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
+from vigs_ros.runtime import VigsNode, run_nodes
+from vigs_ros.time_sync import FrameSynchronizer, ImuBuffer, ImuBufferConfig
+
+NODE_NAME = "frontend"
+IDENTITY_16 = [float(v) for v in np.eye(4).reshape(-1)]
+
+PARAMS = [
+    ParamSpec("image_topic", "/image", "input image topic (Image, or CompressedImage with image_transport=compressed)"),
+    ParamSpec("image_transport", "raw", "raw (sensor_msgs/Image) or compressed (sensor_msgs/CompressedImage)"),
+    ParamSpec("camera_info_topic", "/camera_info", "input sensor_msgs/CameraInfo topic"),
+    ParamSpec("imu_topic", "/imu", "input sensor_msgs/Imu topic, for synchronising frames with the IMU"),
+    ParamSpec("sync_imu", True, "process a frame only once the IMU has reached its stamp"),
+    ParamSpec("max_imu_wait_s", 0.5, "a frame waits at most this much frame time for the IMU (s)"),
+    ParamSpec("preintegrated_topic", "/vigs/preintegrated_imu", "input vigs_msgs/PreintegratedImu"),
+    ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "input vigs_msgs/KeyframePoseUpdate (loop closure)"),
+    ParamSpec("odometry_topic", "/odometry", "output nav_msgs/Odometry (odom_frame -> base_frame)"),
+    ParamSpec("path_topic", "/path", "output nav_msgs/Path of frame poses in map_frame"),
+    ParamSpec("keyframe_topic", "/vigs/keyframes", "output vigs_msgs/Keyframe"),
+    ParamSpec("keyframe_event_topic", "/vigs/keyframe_events", "output vigs_msgs/NavState at each new keyframe"),
+    ParamSpec("state_topic", "/vigs/state", "output vigs_msgs/NavState: newest keyframe after optimisation"),
+    ParamSpec("keyframe_update_topic", "/vigs/keyframe_pose_updates",
+              "output vigs_msgs/KeyframePoseUpdate: keyframes moved by the frontend's BA"),
+    ParamSpec("frame_done_topic", "/vigs/frame_done", "output std_msgs/Header per consumed frame (replay pacing)"),
+    ParamSpec("status_topic", "/vigs/status", "output diagnostic_msgs/DiagnosticArray"),
+    ParamSpec("map_frame", "map", "REP-105 map frame (the estimator's world)"),
+    ParamSpec("odom_frame", "odom", "REP-105 odom frame (continuous)"),
+    ParamSpec("base_frame", "base_link", "body (IMU) frame"),
+    ParamSpec("camera_frame", "camera", "camera optical frame"),
+    ParamSpec("publish_tf", True, "publish map->odom->base_link on /tf and base_link->camera on /tf_static"),
+    ParamSpec("T_body_camera", IDENTITY_16, "camera pose in the body frame T_bc, 4x4 row-major (EuRoC: cam0 T_BS)"),
+    ParamSpec("time_offset_s", 0.0, "camera-IMU time offset: t_imu = t_cam + offset (s, Kalibr timeshift_cam_imu)"),
+    ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)"),
+    ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long"),
+    ParamSpec("path_every_n", 10, "publish the path every n frames (and at every keyframe)"),
+    ParamSpec("path_max_poses", 20000, "poses kept in the path"),
+    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
+    ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window)"),
+    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))"),
+    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))"),
+    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))"),
+    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))"),
+    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz)"),
+]
+# the in-process pipeline's settings (vigs_core.system.PipelineConfig), minus what belongs to other nodes
+PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop",))
+PARAMS += PIPELINE_PARAMS
+
+
+class FrontendNode(VigsNode):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        self.p = declare(self, PARAMS)
+        if self.p["image_transport"] not in ("raw", "compressed"):
+            raise ValueError(f"image_transport must be raw or compressed, got {self.p['image_transport']!r}")
+        self.T_bc = matrix_from_param(self.p["T_body_camera"], "T_body_camera")
+        self.offset_ns = int(round(float(self.p["time_offset_s"]) * 1e9))
+        self.types = RclpyTypes()
+        self.status = StatusReporter(self, self.p["status_topic"], self.p["status_period_s"])
+        self.config = build_config(PipelineConfig(), {s.name: self.p[s.name] for s in PIPELINE_PARAMS})
+        if int(self.config.frame_stride) < 1:
+            raise ValueError(f"frame_stride must be >= 1, got {self.config.frame_stride}")
+        self.noise = ImuNoise(self.p["gyro_noise_density"], self.p["gyro_random_walk"], self.p["acc_noise_density"],
+                              self.p["acc_random_walk"], self.p["rate_hz"])
+        self.camera: CameraModel | None = None
+        self.engine: FrontendEngine | None = None
+        self.frames_in = 0
+        self.frames = Rep105Frames()
+        self.path_poses = []
+        self.first_image_wall: float | None = None
+        self.frames_since_path = 0
+        self.imu = ImuBuffer(ImuBufferConfig(self.p["rate_hz"], max_age_s=float(self.p["imu_buffer_s"])))
+        self.sync = FrameSynchronizer(self.offset_ns, max_pending=int(self.p["image_queue_depth"]),
+                                      max_wait_ns=int(float(self.p["max_imu_wait_s"]) * 1e9))
+
+        self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
+        self.pub_path = self.create_publisher(Path, self.p["path_topic"], latched_qos(1))
+        self.pub_tf = self.create_publisher(TFMessage, "/tf", reliable_qos(100))
+        self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", latched_qos(1))
+        self.pub_kf = self.create_publisher(Keyframe, self.p["keyframe_topic"], latched_qos(20))
+        self.pub_event = self.create_publisher(NavState, self.p["keyframe_event_topic"], reliable_qos(100))
+        self.pub_state = self.create_publisher(NavState, self.p["state_topic"], latched_qos(1))
+        self.pub_update = self.create_publisher(KeyframePoseUpdate, self.p["keyframe_update_topic"], reliable_qos(20))
+        self.pub_done = self.create_publisher(Header, self.p["frame_done_topic"], reliable_qos(100))
+
+        depth = int(self.p["image_queue_depth"])
+        if self.p["image_transport"] == "compressed":
+            self.create_subscription(CompressedImage, self.p["image_topic"], self.on_image, sensor_qos(depth))
+        else:
+            self.create_subscription(Image, self.p["image_topic"], self.on_image, sensor_qos(depth))
+        self.create_subscription(CameraInfo, self.p["camera_info_topic"], self.on_camera_info, sensor_qos(5))
+        if self.p["sync_imu"]:
+            self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+        self.create_subscription(PreintegratedImu, self.p["preintegrated_topic"], self.on_preintegrated,
+                                 reliable_qos(100))
+        self.create_subscription(KeyframePoseUpdate, self.p["pose_update_topic"], self.on_pose_update,
+                                 reliable_qos(20))
+        if self.p["publish_tf"]:
+            self.pub_tf_static.publish(tf_message(self.types, [StampedTransform(
+                0, self.p["base_frame"], self.p["camera_frame"], self.T_bc)]))
+
+    # ------------------------------------------------------------------ inputs
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            camera = camera_info_to_model(msg)
+        except ValueError as exc:
+            self.status.warn("camera_info", f"camera info rejected: {exc}")
+            return
+        if self.camera is None:
+            self.camera = camera
+            self.engine = FrontendEngine(camera, self.config, self.T_bc, self.imu if self.p["sync_imu"] else None,
+                                         self.noise)
+            self.status.info["core"] = type(self.engine.odometry).__name__
+            self.status.clear_error("camera_info")
+            self.status.info["camera"] = (f"{camera.width}x{camera.height} {camera.distortion} -> processing "
+                                          f"{self.engine.camera.width}x{self.engine.camera.height}")
+            self.get_logger().info(f"camera: {self.status.info['camera']}")
+        elif camera != self.camera:
+            self.status.warn("camera_info", "camera info changed while running: keeping the first one")
+
+    def on_imu(self, msg: Imu) -> None:
+        try:
+            t_ns, gyro, acc = imu_to_sample(msg)
+        except ValueError:
+            return  # reported by the IMU node
+        self.imu.add(t_ns, gyro, acc)
+        self.process_ready()
+
+    def on_image(self, msg) -> None:
+        self.status.count("images_in")
+        try:
+            if isinstance(msg, CompressedImage):
+                image, encoding = compressed_to_numpy(msg)
+            else:
+                image, encoding = image_to_numpy(msg)
+        except ValueError as exc:
+            self.status.warn("image", f"image rejected: {exc}")
+            self.frame_done(msg.header)
+            return
+        if encoding not in ("mono8", "rgb8", "bgr8"):
+            self.status.warn("encoding", f"image encoding {encoding!r} is not an intensity image; expected mono8, "
+                                         "rgb8 or bgr8")
+            self.frame_done(msg.header)
+            return
+        if self.engine is None:
+            now = time.monotonic()
+            self.first_image_wall = self.first_image_wall or now
+            if now - self.first_image_wall >= self.p["camera_info_timeout_s"]:
+                self.status.set_error("camera_info", f"images arrive but no camera info on "
+                                                     f"{self.p['camera_info_topic']}")
+            self.status.count("frames_without_camera_info")
+            self.frame_done(msg.header)
+            return
+        if image.shape[:2] != (self.camera.height, self.camera.width):
+            self.status.warn("image_size", f"image is {image.shape[1]}x{image.shape[0]} but camera info says "
+                                           f"{self.camera.width}x{self.camera.height}: dropped")
+            self.frame_done(msg.header)
+            return
+        if not self.p["sync_imu"]:
+            self.track(stamp_to_ns(msg.header.stamp) + self.offset_ns, image, encoding, msg.header)
+            return
+        remark = self.sync.push(stamp_to_ns(msg.header.stamp), (image, encoding, msg.header))
+        if remark is not None:
+            self.status.warn("frame_sync", remark)
+        self.process_ready()
+
+    def process_ready(self) -> None:
+        """Track the frames the IMU has caught up with (see FrameSynchronizer)."""
+        for t_ns, (image, encoding, header), complete in self.sync.release(self.imu):
+            if not complete:
+                self.status.warn("imu_coverage", f"frame at {t_ns} ns processed without IMU data up to its stamp "
+                                                 f"(IMU at {self.imu.latest_ns} ns)")
+            self.track(t_ns, image, encoding, header)
+
+    def track(self, t_ns: int, image, encoding: str, header) -> None:
+        self.frames_in += 1
+        if (self.frames_in - 1) % int(self.config.frame_stride):
+            self.frame_done(header)
+            return
+        try:
+            out = self.engine.track(t_ns, image, encoding)
+        except Exception as exc:  # a core failure on one frame must not take the graph down: report it
+            self.status.warn("core_error", f"the odometry core failed on the frame at {t_ns} ns: "
+                                           f"{type(exc).__name__}: {exc}")
+            if self.status.counters["warn.core_error"] == 1:
+                self.get_logger().error("first core failure:\n" + traceback.format_exc())
+            self.frame_done(header)
+            return
+        self.status.count("frames_tracked")
+        if out.rotation_error > 1e-6:
+            self.status.warn("core_pose", f"the odometry core returned rotations off SO(3) by {out.rotation_error:.2e}"
+                                          " (projected onto SO(3) for output)")
+        self.publish_frame(out)
+        self.frame_done(header)
+
+    def on_preintegrated(self, msg: PreintegratedImu) -> None:
+        try:
+            pre = msg_to_preintegration(msg)
+        except ValueError as exc:
+            self.status.warn("preintegration", f"preintegrated IMU rejected: {exc}")
+            return
+        self.status.count("preintegrations_in")
+        self.status.info["last_preintegration"] = f"keyframes {pre.from_id} -> {pre.to_id}, {pre.dt:.3f} s"
+
+    def on_pose_update(self, msg: KeyframePoseUpdate) -> None:
+        try:
+            update = msg_to_pose_update(msg)
+        except ValueError as exc:
+            self.status.warn("pose_update", f"keyframe pose update rejected: {exc}")
+            return
+        if self.engine is None:
+            return
+        ids = [int(i) for i in update.ids]
+        n = self.engine.apply_corrections(dict(zip(ids, update.poses)), dict(zip(ids, update.scales)))
+        if n:
+            self.frames.mark_correction()
+            self.status.count("corrections_applied")
+            self.get_logger().info(f"applied loop-closure corrections to {n} keyframes")
+
+    # ------------------------------------------------------------------ outputs
+    def frame_done(self, header) -> None:
+        self.pub_done.publish(Header(stamp=header.stamp, frame_id=header.frame_id))
+
+    def publish_frame(self, out) -> None:
+        p = self.p
+        if out.T_wc is None:
+            return
+        T_wb = body_from_camera(out.T_wc, self.T_bc)
+        if out.realigned:  # IMU initialisation re-expressed the world: map jumps, odom stays continuous
+            self.frames.mark_correction()
+            self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
+        T_map_odom, T_odom_base = self.frames.update(T_wb)
+        self.pub_odom.publish(pose_to_odometry(self.types, out.t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
+        if p["publish_tf"]:
+            self.pub_tf.publish(tf_message(self.types, [
+                StampedTransform(out.t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
+                StampedTransform(out.t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
+        self.path_poses.append(self.types.new("geometry_msgs/msg/PoseStamped",
+                                              header=make_header(self.types, out.t_ns, p["map_frame"]),
+                                              pose=pose_msg(self.types, T_wb)))
+        del self.path_poses[:-int(p["path_max_poses"])]
+        for kf in out.new_keyframes:
+            kf.frame_id, kf.camera_frame_id = p["map_frame"], p["camera_frame"]
+            self.pub_kf.publish(keyframe_to_msg(self.types, kf))
+            self.pub_event.publish(nav_state_to_msg(self.types, self.nav_state(
+                kf.id, kf.t_ns, kf.T_wc, out.keyframe_states[kf.id], out.inertial_initialized)))
+            self.status.count("keyframes_out")
+        if out.updated_keyframes:
+            ids = sorted(out.updated_keyframes)
+            self.pub_update.publish(pose_update_to_msg(self.types, PoseUpdateData(
+                out.t_ns, np.array(ids), np.stack([out.updated_keyframes[i] for i in ids]), np.ones(len(ids)),
+                p["map_frame"])))
+        if out.new_keyframes or out.updated_keyframes:
+            newest = max(self.engine.odometry.keyframes)
+            kf = self.engine.odometry.keyframes[newest]
+            self.pub_state.publish(nav_state_to_msg(self.types, self.nav_state(
+                newest, kf.t_ns, invert(kf.pose.numpy()), self.engine.keyframe_state(newest),
+                out.inertial_initialized)))
+        self.frames_since_path += 1
+        if out.new_keyframes or self.frames_since_path >= int(p["path_every_n"]):
+            self.frames_since_path = 0
+            self.pub_path.publish(self.types.new("nav_msgs/msg/Path",
+                                                 header=make_header(self.types, out.t_ns, p["map_frame"]),
+                                                 poses=list(self.path_poses)))
+
+
+    def nav_state(self, kf_id: int, t_ns: int, T_wc: np.ndarray, state, inertial: bool) -> NavStateData:
+        """The body's navigation state at a keyframe (pose from the camera pose and T_body_camera)."""
+        return NavStateData(t_ns, kf_id, body_from_camera(T_wc, self.T_bc), state.velocity, state.bias_gyro,
+                            state.bias_acc, inertial, self.p["map_frame"])
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_nodes([FrontendNode], args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""Launcher of the VIGS graph (``vigs launch``): the nodes as separate processes (default) or all in one
+process (``composed``), optionally with a bag replay feeding them.
+
+Every node process gets ``--ros-args --params-file`` for the shipped ``params/*.yaml`` (``ros.yaml`` first)
+and then the user's files (later files override earlier ones), plus ``-p use_sim_time:=true`` when a bag is
+replayed (nodes run on the bag's ``/clock``).
+
+Supervision: children run in their own sessions, so a terminal's Ctrl-C reaches only the launcher, which
+forwards SIGINT/SIGTERM as SIGINT to every child (nodes close cleanly: the mapper saves its map), waits up to
+``shutdown_timeout_s``, then escalates to SIGTERM and SIGKILL. When the replay finishes the graph gets
+``linger_s`` to drain and is then shut down. Exit code: 0 after a clean shutdown; when a node exits on its own
+(it died), the rest is shut down and the launcher returns that node's exit code (1 if it was 0 or a signal).
+"""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vigs_ros.graph import NODES
+from vigs_ros.params import default_params_files
+
+
+@dataclass
+class LaunchConfig:
+    """Args:
+        bag: bag to replay into the graph (None: live topics).
+        params: extra parameter files, applied after the shipped ones.
+        composed: all nodes in one process with one MultiThreadedExecutor.
+        nodes: nodes to start (default: all four).
+        replay_args: extra ``vigs replay`` arguments (``--rate``, ``--fast``, ``--remap``...).
+        ros_args: extra ``--ros-args`` items for every node (e.g. ``["-p", "torch_threads:=1"]``).
+        linger_s: after the replay ends, time for the graph to drain before shutdown (s).
+        shutdown_timeout_s: time a child gets to exit after SIGINT before SIGTERM / SIGKILL (s).
+    """
+
+    bag: str | None = None
+    params: list[str] = field(default_factory=list)
+    composed: bool = False
+    nodes: list[str] = field(default_factory=lambda: list(NODES))
+    replay_args: list[str] = field(default_factory=list)
+    ros_args: list[str] = field(default_factory=list)
+    linger_s: float = 3.0
+    shutdown_timeout_s: float = 30.0
+
+
+def bag_input_remaps(bag: str | Path) -> tuple[list[str], list[str]]:
+    """Remaps of a bag's sensor topics onto the nodes' default inputs, found by message type (the first topic
+    of each type): an Image topic -> ``/image`` (else a CompressedImage topic -> ``/image`` with
+    ``image_transport:=compressed`` for the frontend), CameraInfo -> ``/camera_info``, Imu -> ``/imu``.
+    Returns ``(replay remaps "FROM:=TO", extra node --ros-args)``."""
+    from vigs_ros.replay import open_reader
+
+    reader = open_reader(bag)
+    try:
+        by_type: dict[str, str] = {}
+        for conn in sorted(reader.connections, key=lambda c: c.topic):
+            by_type.setdefault(conn.msgtype, conn.topic)
+    finally:
+        reader.close()
+    remaps, ros_args = [], []
+    if "sensor_msgs/msg/Image" in by_type:
+        remaps.append(f"{by_type['sensor_msgs/msg/Image']}:=/image")
+    elif "sensor_msgs/msg/CompressedImage" in by_type:
+        remaps.append(f"{by_type['sensor_msgs/msg/CompressedImage']}:=/image")
+        ros_args += ["-p", "image_transport:=compressed"]
+    for typename, topic in (("sensor_msgs/msg/CameraInfo", "/camera_info"), ("sensor_msgs/msg/Imu", "/imu")):
+        if typename in by_type:
+            remaps.append(f"{by_type[typename]}:={topic}")
+    return remaps, ros_args
+
+
+def node_ros_args(cfg: LaunchConfig) -> list[str]:
+    """``--ros-args`` of every node process."""
+    files = [*default_params_files(), *map(Path, cfg.params)]
+    for f in files:
+        if not f.is_file():
+            raise ValueError(f"parameter file {f} does not exist")
+    args = ["--ros-args"]
+    for f in files:
+        args += ["--params-file", str(f)]
+    if cfg.bag is not None:
+        args += ["-p", "use_sim_time:=true"]
+    return args + list(cfg.ros_args)
+
+
+def commands(cfg: LaunchConfig) -> dict[str, list[str]]:
+    """Child name -> command line (nodes, or one composed graph, then the replay)."""
+    for name in cfg.nodes:
+        if name not in NODES:
+            raise ValueError(f"unknown node {name!r}; expected some of {list(NODES)}")
+    ros_args = node_ros_args(cfg)
+    py = sys.executable
+    if cfg.composed:
+        cmds = {"graph": [py, "-m", "vigs_ros.graph", *cfg.nodes, *ros_args]}
+    else:
+        cmds = {name: [py, "-m", NODES[name][0], *ros_args] for name in cfg.nodes}
+    if cfg.bag is not None:
+        cmds["replay"] = [py, "-m", "vigs_cli.main", "replay", str(cfg.bag), *cfg.replay_args]
+    return cmds
+
+
+class Supervisor:
+    """Starts child processes, forwards signals, detects dead children, shuts everything down."""
+
+    def __init__(self, shutdown_timeout_s: float = 30.0, linger_s: float = 3.0) -> None:
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.shutdown_timeout_s = shutdown_timeout_s
+        self.linger_s = linger_s
+        self._signal: int | None = None
+
+    def start(self, name: str, cmd: list[str]) -> None:
+        proc = subprocess.Popen(cmd, start_new_session=True)
+        self.procs[name] = proc
+        print(f"[launch] started {name} (pid {proc.pid})", flush=True)
+
+    def _on_signal(self, signum, frame) -> None:
+        self._signal = signum
+
+    def run(self) -> int:
+        """Supervise until a signal, a dead node, or the end of the replay; returns the exit code."""
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            return self._loop()
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _loop(self) -> int:
+        replay_done_at = None
+        while True:
+            if self._signal is not None:
+                print(f"[launch] {signal.Signals(self._signal).name}: shutting down", flush=True)
+                return self.shutdown()
+            for name, proc in self.procs.items():
+                rc = proc.poll()
+                if rc is None:
+                    continue
+                if name == "replay":
+                    if rc != 0:
+                        print(f"[launch] replay failed (exit {rc}): shutting down", flush=True)
+                        self.shutdown()
+                        return rc
+                    if replay_done_at is None:
+                        replay_done_at = time.monotonic()
+                        print(f"[launch] replay finished; shutting down in {self.linger_s:.1f} s", flush=True)
+                    continue
+                print(f"[launch] {name} exited unexpectedly with code {rc}: shutting down the graph", flush=True)
+                self.shutdown()
+                return rc if rc > 0 else 1
+            if replay_done_at is not None and time.monotonic() - replay_done_at >= self.linger_s:
+                return self.shutdown()
+            time.sleep(0.05)
+
+    def shutdown(self) -> int:
+        """SIGINT every running child, escalate after the timeout; 0 if all exited with 0 (or were done)."""
+        alive = {n: p for n, p in self.procs.items() if p.poll() is None}
+        for p in alive.values():
+            p.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + self.shutdown_timeout_s
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            while time.monotonic() < deadline and any(p.poll() is None for p in alive.values()):
+                time.sleep(0.05)
+            stuck = [n for n, p in alive.items() if p.poll() is None]
+            if not stuck:
+                break
+            print(f"[launch] {stuck} still running: sending {sig.name}", flush=True)
+            for n in stuck:
+                alive[n].send_signal(sig)
+            deadline = time.monotonic() + 2.0
+        for p in alive.values():
+            p.wait()
+        failed = {n: p.returncode for n, p in alive.items() if p.returncode != 0}
+        if failed:
+            print(f"[launch] unclean exit: {failed}", flush=True)
+            return 1
+        print("[launch] all processes exited cleanly", flush=True)
+        return 0
+
+
+def launch(cfg: LaunchConfig) -> int:
+    """Start the graph of ``cfg`` and supervise it (blocking); the exit code."""
+    cmds = commands(cfg)
+    sup = Supervisor(cfg.shutdown_timeout_s, cfg.linger_s)
+    try:
+        for name, cmd in cmds.items():
+            sup.start(name, cmd)
+    except OSError as exc:
+        print(f"[launch] cannot start: {exc}", flush=True)
+        sup.shutdown()
+        return 1
+    return sup.run()

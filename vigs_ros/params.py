@@ -1,0 +1,157 @@
+"""Node parameters: declared in the node with a default and a description, loaded from ``params/*.yaml``.
+
+YAML layout (the ROS 2 parameter-file layout, read by rcl itself from ``--ros-args --params-file F``)::
+
+    <node name>:            # or /** for every node
+      ros__parameters:
+        name: value
+
+Several files may be given; later ones override earlier ones. :func:`load_params_file` reads the same
+layout in Python, for checks and for tools that run without rcl.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One declared parameter: ``name``, ``default`` (its type is the parameter's type), ``description``;
+    ``dynamic_typing`` accepts values of another type (e.g. an integer YAML value for a float field)."""
+
+    name: str
+    default: Any
+    description: str
+    dynamic_typing: bool = False
+
+
+def declare(node, specs: list[ParamSpec]) -> dict[str, Any]:
+    """Declare ``specs`` on an rclpy ``node`` and return ``{name: value}`` (overrides applied by rcl)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    values = {}
+    for spec in specs:
+        if node.has_parameter(spec.name):
+            values[spec.name] = node.get_parameter(spec.name).value
+            continue
+        param = node.declare_parameter(spec.name, spec.default, ParameterDescriptor(
+            description=spec.description, dynamic_typing=spec.dynamic_typing))
+        value = param.value
+        if isinstance(spec.default, (list, tuple)) and value is not None:
+            value = list(value)
+        values[spec.name] = value
+    return values
+
+
+def dataclass_specs(config, prefix: str = "", skip: tuple[str, ...] = ()) -> list[ParamSpec]:
+    """ParamSpecs ``<prefix><field>`` for the fields of a config dataclass (class or instance; defaults from it),
+    recursing into nested dataclasses with dotted names (``odometry.flow.preset``), as rcl flattens nested
+    YAML mappings.
+
+    Fields named in ``skip`` (dotted, without the prefix), fields without a default, and fields whose value
+    is not a bool, int, float, str or a non-empty list/tuple of numbers (e.g. ``None``) are left out: they are
+    not expressible as ROS parameters. Numbers are declared with dynamic typing (``10`` for a float field).
+    """
+    specs = []
+    cls = config if isinstance(config, type) else type(config)
+    for f in dataclasses.fields(config):
+        if f.name in skip:
+            continue
+        if not isinstance(config, type):
+            default = getattr(config, f.name)
+        elif f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            default = f.default_factory()  # type: ignore[misc]
+        else:
+            continue
+        if dataclasses.is_dataclass(default):
+            inner_skip = tuple(s[len(f.name) + 1:] for s in skip if s.startswith(f.name + "."))
+            specs += dataclass_specs(default, f"{prefix}{f.name}.", inner_skip)
+            continue
+        if isinstance(default, tuple):
+            default = list(default)
+        ok_list = isinstance(default, list) and default and all(isinstance(v, (int, float)) for v in default)
+        if not (isinstance(default, (bool, int, float, str)) or ok_list):
+            continue
+        specs.append(ParamSpec(prefix + f.name, default, f"{cls.__name__}.{f.name} (see its docstring)",
+                               dynamic_typing=not isinstance(default, (bool, str))))
+    return specs
+
+
+def nested(values: dict[str, Any], prefix: str) -> dict[str, Any]:
+    """The ``<prefix>a.b`` entries of ``values`` as a nested mapping ``{"a": {"b": ...}}``."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if not key.startswith(prefix):
+            continue
+        *parents, leaf = key[len(prefix):].split(".")
+        d = out
+        for p in parents:
+            d = d.setdefault(p, {})
+        d[leaf] = value
+    return out
+
+
+def build_config(default, values: dict[str, Any], prefix: str = ""):
+    """``default`` (a config dataclass instance) with the ``<prefix>...`` parameters of ``values`` applied
+    (:func:`vigs_core.system.apply_overrides`); list values of tuple fields become tuples again."""
+    from vigs_core.system import apply_overrides
+
+    config = apply_overrides(default, nested(values, prefix))
+    _restore_tuples(config)
+    return config
+
+
+def _restore_tuples(obj) -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            _restore_tuples(value)
+        elif isinstance(value, list) and isinstance(f.default, tuple):
+            setattr(obj, f.name, tuple(value))
+
+
+def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
+    """The ``ros__parameters`` of ``node_name`` in a params file (``/**`` entries first, then the node's).
+
+    Raises:
+        ValueError: the file is not a mapping of ``<node>: {ros__parameters: {...}}``.
+    """
+    path = Path(path)
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got {type(data).__name__}")
+    out: dict[str, Any] = {}
+    for key in ("/**", node_name, "/" + node_name):
+        section = data.get(key)
+        if section is None:
+            continue
+        if not isinstance(section, dict) or "ros__parameters" not in section:
+            raise ValueError(f"{path}: section {key!r} must hold a 'ros__parameters' mapping")
+        out.update(_flatten(section["ros__parameters"] or {}))
+    return out
+
+
+def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings become dotted names, as rcl does (``a: {b: 1}`` -> ``a.b``)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def default_params_files() -> list[Path]:
+    """The shipped ``params/*.yaml`` files, ``ros.yaml`` (graph-wide) first, then the nodes' in name order."""
+    files = sorted(PARAMS_DIR.glob("*.yaml"))
+    return sorted(files, key=lambda p: (p.name != "ros.yaml", p.name))
