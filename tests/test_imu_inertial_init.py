@@ -101,3 +101,32 @@ def test_noisy_analytic_motion_error_is_covered_by_the_reported_uncertainty(refi
     assert bool(result.rotation_corrections.abs().max() > 0) == refine
     assert scale_err < 0.02 and grav_err < 0.5
     assert np.abs(result.bias_gyro.numpy() - bg).max() < 0.002
+
+
+def test_bias_random_walk_follows_a_drifting_accelerometer_bias():
+    """A bias that drifts 0.15 m/s^2 over the window: one shared bias pushes the error into the scale, one
+    bias per keyframe tied by the random walk follows the drift and keeps the scale."""
+    motion = AnalyticMotion(rot_amp=np.array([0.3, 0.2, 0.4]), rot_freq=np.array([0.9, 0.6, 1.1]),
+                            rot_phase=np.array([0.1, 2.0, 4.0]), pos_amp=np.array([0.6, 0.4, 0.3]),
+                            pos_freq=np.array([1.2, 0.8, 1.4]), pos_phase=np.array([1.0, 3.0, 5.0]))
+    t = np.arange(0, 12_000_000_000, 5_000_000)
+    clean = motion.imu(t)
+    drift = np.outer(t * 1e-9 / 12.0, [0.15, -0.1, 0.05])  # (N, 3) m/s^2, linear in time
+    imu = ImuSamples(t, clean.gyro, clean.acc + drift)
+    t_kf = np.arange(1_000_000_000, 11_000_000_001, 250_000_000)
+    R, p, _ = motion.state(t_kf * 1e-9)
+    gt = Trajectory(t_kf, p.numpy(), matrix_to_quat(R).numpy())
+    T_bc = se3_exp(torch.tensor([0.02, -0.06, 0.01, 1.2, -1.2, 1.2], dtype=F64)).numpy()
+    scenario = make_scenario(gt, int(t_kf[0]), 10.0, 0.25, T_bc, 2.0, 0.0, np.random.default_rng(0))
+    noise = ImuNoise(acc_random_walk=0.02)
+    errors = {}
+    for walk in (False, True):
+        result = inertial_only_init(scenario.T_wc, scenario.stamps_ns, imu, noise, se3_inverse(torch.as_tensor(T_bc)),
+                                    InertialInitConfig(bias_random_walk=walk))
+        errors[walk] = init_errors(result, scenario)
+    assert errors[True][0] < 0.003 and errors[True][1] < 0.1
+    assert errors[False][0] > 2 * errors[True][0] and errors[False][1] > 3 * errors[True][1]
+    k = np.searchsorted(t, scenario.stamps_ns)
+    assert result.keyframe_biases.shape == (len(t_kf), 6)
+    assert np.abs(result.keyframe_biases[:, 3:].numpy() - drift[k]).max() < 0.03  # the drift spans 0.15
+    assert np.allclose(result.bias_acc.numpy(), result.keyframe_biases[-1, 3:].numpy())

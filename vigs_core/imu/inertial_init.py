@@ -3,8 +3,10 @@ Visual-Inertial Initialization", ICRA 2020).
 
 Given the up-to-scale camera poses ``T_wc,k`` of ``N`` keyframes and the IMU between them, estimate
 the gravity direction ``R_wg`` (2 DoF), the log-scale ``sigma`` (``s = exp(sigma)`` multiplies the
-camera positions), one velocity per keyframe and one bias ``(b_g, b_a)`` shared by the window, by
-minimising the inertial residuals of :mod:`vigs_core.imu.residual` plus bias priors with
+camera positions), one velocity per keyframe and one bias ``(b_g, b_a)`` shared by the window (or,
+with ``bias_random_walk``, one bias per keyframe tied to its neighbours by the random-walk term
+``r_b = b_j - b_i`` of VIGS-SLAM Eq. (3), weighted by the random-walk covariance of each interval),
+by minimising the inertial residuals of :mod:`vigs_core.imu.residual` plus bias priors with
 Levenberg-Marquardt. Camera positions are held fixed. Camera rotations are either held fixed too
 (default, as in VIGS-SLAM: their noise ``pose_rotation_std`` is pushed through the rotation
 Jacobians into each factor's covariance) or (``refine_rotations=True``) receive a small correction
@@ -69,6 +71,12 @@ class InertialInitConfig:
         refine_rotations: estimate a small rotation correction per keyframe (prior
             ``pose_rotation_std``) instead of holding the rotations fixed and widening the factor
             covariances; the gyro then averages the rotation noise of the poses out.
+        bias_random_walk: estimate one bias per keyframe, consecutive biases tied by the residual's
+            random-walk term (covariance ``sigma_rw^2 dt`` from the ``ImuNoise`` random walks); the
+            bias priors then act on the first keyframe's bias. Off: one bias for the whole window.
+            A constant bias makes the solver trust the IMU's dead reckoning over the whole window;
+            on real EuRoC data the bias wanders (the V1_01 ground-truth fit: about 0.012-0.016
+            m/s^2/sqrt(s), 4-5x the datasheet random walk), so pass measured random walks with it.
     """
 
     gravity: float = 9.81
@@ -83,6 +91,7 @@ class InertialInitConfig:
     max_gravity_std_deg: float = 1.0
     scheme: str = "closed_form"
     refine_rotations: bool = False
+    bias_random_walk: bool = False
 
 
 @dataclass
@@ -93,7 +102,8 @@ class InertialInit:
         R_wg: (3, 3) gravity-frame rotation; ``gravity_world = R_wg (0, 0, -g)`` (3,) m/s^2.
         scale: ``exp(log_scale)``; metric positions are ``scale * p_wc`` (+ lever arm).
         velocities: (N, 3) body velocities in the world frame (m/s).
-        bias_gyro, bias_acc: (3,) rad/s, m/s^2.
+        bias_gyro, bias_acc: (3,) rad/s, m/s^2, at the last keyframe (the same for every keyframe
+            unless ``bias_random_walk``).
         rotation_corrections: (N, 3) left rotation increments applied to the camera rotations
             (``R_wc <- Exp(d) R_wc``; zero when ``refine_rotations`` is off).
         cov_gravity_scale: (3, 3) covariance of (2 gravity angles (rad), log-scale).
@@ -102,6 +112,7 @@ class InertialInit:
         chi2_per_dof: final weighted cost over the degrees of freedom.
         trustworthy: both standard deviations under the configured limits.
         iterations: LM iterations run.
+        keyframe_biases: (N, 6) ``(b_g, b_a)`` of every keyframe.
     """
 
     R_wg: torch.Tensor
@@ -119,6 +130,7 @@ class InertialInit:
     chi2_per_dof: float
     trustworthy: bool
     iterations: int
+    keyframe_biases: torch.Tensor
 
 
 def _gyro_bias(pre: Preintegrated, R_b: torch.Tensor, iterations: int = 3) -> torch.Tensor:
@@ -202,13 +214,16 @@ def inertial_only_init(
     log_scale = torch.log(s) if s > 0 else torch.zeros((), **f)
     R_wg = gravity_rotation(g_vec)
     prior_mean = torch.zeros(6, **f) if bias_prior is None else torch.as_tensor(bias_prior).to(**f)
-    bias = torch.cat((bg, prior_mean[3:]))
+    walk = cfg.bias_random_walk
+    nb = n if walk else 1  # bias blocks
+    m = 15 if walk else 9  # residual rows used: a shared bias has r_b = b_j - b_i = 0
+    bias = torch.cat((bg, prior_mean[3:])).expand(nb, 6).clone()
 
     prior_w = torch.tensor([cfg.prior_bias_gyro_std] * 3 + [cfg.prior_bias_acc_std] * 3, **f) ** -2
     refine = cfg.refine_rotations and cfg.pose_rotation_std > 0
     n_rot = 3 * n if refine else 0
-    P = 3 + 3 * n + 6 + n_rot
-    c_bias, c_rot = 3 + 3 * n, 9 + 3 * n  # first columns of the bias and rotation-correction blocks
+    P = 3 + 3 * n + 6 * nb + n_rot
+    c_bias, c_rot = 3 + 3 * n, 3 + 3 * n + 6 * nb  # first columns of the bias and rotation-correction blocks
     hat_p = hat(T_wc[:, :3, 3])
 
     def residuals(state):
@@ -217,8 +232,8 @@ def inertial_only_init(
         if refine:  # corrected camera rotations Exp(dphi_k) R_wc,k at fixed camera positions
             T = T_wc.clone()
             T[:, :3, :3] = so3_exp(dphi) @ T_wc[:, :3, :3]
-        b = bias.expand(n - 1, 6)
-        return inertial_residual(pre, T[:-1], vel[:-1], b, T[1:], vel[1:], b, R_wg, log_scale, T_cb, cfg.gravity)
+        b_i, b_j = (bias[:-1], bias[1:]) if walk else (bias.expand(n - 1, 6),) * 2
+        return inertial_residual(pre, T[:-1], vel[:-1], b_i, T[1:], vel[1:], b_j, R_wg, log_scale, T_cb, cfg.gravity)
 
     def rotation_jacobians(res):
         """d r / d (left rotation increment of camera i / j at fixed camera position), (B, 9, 3) each."""
@@ -228,8 +243,9 @@ def inertial_only_init(
         return J_i, J_j
 
     def weights(res, robust: bool):
-        """Information of each factor: IMU covariance, pose position noise and (unless the rotations are
-        refined) the pose rotation noise pushed through the rotation Jacobians."""
+        """(n-1, m, m) information of each factor: IMU covariance, pose position noise and (unless the
+        rotations are refined) the pose rotation noise pushed through the rotation Jacobians; with
+        ``bias_random_walk`` also the block of the bias random walk over the interval."""
         cov = pre.cov[:, :9, :9].clone()
         if not refine:
             J_i, J_j = rotation_jacobians(res)
@@ -240,39 +256,50 @@ def inertial_only_init(
             r = res.residual[:, :9]
             norm = (r[:, None, :] @ W @ r[:, :, None])[:, 0, 0].clamp_min(0).sqrt()
             W = W * (cfg.huber_threshold / norm.clamp_min(cfg.huber_threshold))[:, None, None]
-        return W
+        if not walk:
+            return W
+        W15 = torch.zeros(n - 1, 15, 15, **f)
+        W15[:, :9, :9] = W
+        W15[:, 9:, 9:] = torch.linalg.inv(pre.cov[:, 9:, 9:])
+        return W15
 
     def cost_of(res, state, W):
         bias, dphi = state[3], state[4]
-        r = res.residual[:, :9]
-        cost = (r[:, None, :] @ W @ r[:, :, None]).sum() + (prior_w * (bias - prior_mean) ** 2).sum()
+        r = res.residual[:, :m]
+        cost = (r[:, None, :] @ W @ r[:, :, None]).sum() + (prior_w * (bias[0] - prior_mean) ** 2).sum()
         if refine:
             cost = cost + (dphi * dphi).sum() / cfg.pose_rotation_std**2
         return float(cost)
 
     def normal_equations(res, state, W):
         bias, dphi = state[3], state[4]
-        jac, r = res.jacobians, res.residual[:, :9]
-        J = torch.zeros(n - 1, 9, P, **f)
-        J[:, :, 0:2] = jac["gravity"][:, :9]
-        J[:, :, 2:3] = jac["log_scale"][:, :9]
+        jac = {name: value[:, :m] for name, value in res.jacobians.items()}
+        r = res.residual[:, :m]
+        J = torch.zeros(n - 1, m, P, **f)
+        J[:, :, 0:2] = jac["gravity"]
+        J[:, :, 2:3] = jac["log_scale"]
         idx = torch.arange(n - 1, device=T_wc.device)
         for k in range(3):
-            J[idx, :, 3 + 3 * idx + k] = jac["vel_i"][:, :9, k]
-            J[idx, :, 3 + 3 * (idx + 1) + k] = jac["vel_j"][:, :9, k]
-        J[:, :, c_bias:c_bias + 6] = jac["bias_i"][:, :9]
+            J[idx, :, 3 + 3 * idx + k] = jac["vel_i"][:, :, k]
+            J[idx, :, 3 + 3 * (idx + 1) + k] = jac["vel_j"][:, :, k]
+        if walk:
+            for k in range(6):
+                J[idx, :, c_bias + 6 * idx + k] = jac["bias_i"][:, :, k]
+                J[idx, :, c_bias + 6 * (idx + 1) + k] = jac["bias_j"][:, :, k]
+        else:  # one shared bias (its r_b rows are dropped: zero)
+            J[:, :, c_bias:c_bias + 6] = jac["bias_i"]
         if refine:  # dphi enters through Exp(dphi): a change d gives the left increment J_l(dphi) d
             J_i, J_j = rotation_jacobians(res)
             Jl = so3_left_jacobian(dphi)
             J_i, J_j = J_i @ Jl[:-1], J_j @ Jl[1:]
             for k in range(3):
-                J[idx, :, c_rot + 3 * idx + k] = J_i[:, :, k]
-                J[idx, :, c_rot + 3 * (idx + 1) + k] = J_j[:, :, k]
+                J[idx, :9, c_rot + 3 * idx + k] = J_i[:, :, k]
+                J[idx, :9, c_rot + 3 * (idx + 1) + k] = J_j[:, :, k]
         JW = J.transpose(-1, -2) @ W
         H = (JW @ J).sum(0)
         grad = (JW @ r[..., None]).sum(0)[:, 0]
         H[c_bias:c_bias + 6, c_bias:c_bias + 6] += torch.diag(prior_w)
-        grad[c_bias:c_bias + 6] += prior_w * (bias - prior_mean)
+        grad[c_bias:c_bias + 6] += prior_w * (bias[0] - prior_mean)
         if refine:
             H[c_rot:, c_rot:] += torch.eye(n_rot, **f) / cfg.pose_rotation_std**2
             grad[c_rot:] += dphi.reshape(-1) / cfg.pose_rotation_std**2
@@ -293,7 +320,7 @@ def inertial_only_init(
                 state[0] @ so3_exp(torch.cat((step[0:2], torch.zeros(1, **f)))),
                 state[1] + step[2],
                 state[2] + step[3:c_bias].reshape(n, 3),
-                state[3] + step[c_bias:c_bias + 6],
+                state[3] + step[c_bias:c_rot].reshape(nb, 6),
                 state[4] + step[c_rot:].reshape(n, 3) if refine else state[4],
             )
             res_c = residuals(cand)
@@ -313,7 +340,7 @@ def inertial_only_init(
     W = weights(res, robust=cfg.weight_rounds > 1)
     cost = cost_of(res, state, W)
     H, _ = normal_equations(res, state, W)
-    dof = max(9 * (n - 1) + 6 + n_rot - P, 1)  # prior rows count as observations
+    dof = max(m * (n - 1) + 6 + n_rot - P, 1)  # prior rows count as observations
     chi2_dof = cost / dof
     cov_all = torch.linalg.inv(H) * max(1.0, chi2_dof)
     cov_gs = cov_all[:3, :3]
@@ -326,7 +353,7 @@ def inertial_only_init(
     return InertialInit(
         R_wg=R_wg, gravity_world=R_wg @ torch.tensor([0.0, 0.0, -cfg.gravity], **f),
         log_scale=float(log_scale), scale=float(torch.exp(log_scale)), velocities=vel,
-        bias_gyro=bias[:3], bias_acc=bias[3:], rotation_corrections=dphi, cov_gravity_scale=cov_gs,
+        bias_gyro=bias[-1, :3], bias_acc=bias[-1, 3:], rotation_corrections=dphi, cov_gravity_scale=cov_gs,
         log_scale_std=log_scale_std, gravity_std_deg=gravity_std_deg, condition_number=cond, chi2_per_dof=chi2_dof,
-        trustworthy=bool(trust), iterations=it,
+        trustworthy=bool(trust), iterations=it, keyframe_biases=bias.expand(n, 6).clone(),
     )
