@@ -1,0 +1,137 @@
+"""The online mapper on an analytic textured room: render quality on views between keyframes, deltas,
+anchored pose/scale updates, asynchronous operation, saving."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from mapping_scenes import orbit_pose, raycast
+
+from vigs_core.camera import CameraModel
+from vigs_core.geometry import se3_exp
+from vigs_core.mapping.mapper import GaussianMapper, MapperConfig
+from vigs_core.mapping.metrics import psnr
+from vigs_core.mapping.ply import load_map
+
+torch.set_num_threads(1)
+CAMERA = CameraModel(96, 64, 60.0, 60.0, 47.5, 31.5)
+
+
+def _mapper(**kw) -> GaussianMapper:
+    return GaussianMapper(MapperConfig(render_scale=1.0, init_stride=2, backend="torch", **kw), CAMERA)
+
+
+def _feed(mapper: GaussianMapper, angles, first_id: int = 0) -> None:
+    for i, a in enumerate(angles):
+        T = orbit_pose(a)
+        image, depth = raycast(T, CAMERA)
+        mapper.add_keyframe(first_id + i, T, image, depth, timestamp_ns=1000 * (first_id + i))
+
+
+def test_mapper_renders_unseen_views_and_reports_deltas(tmp_path):
+    mapper = _mapper()
+    _feed(mapper, [0.0])
+    assert mapper.pending() == 1 and len(mapper.map) == 0  # queued, not yet applied
+    assert mapper.step() and not mapper.step()
+    first = mapper.pop_delta()
+    assert len(first.added) == len(mapper.map) > 500
+    assert len(first.changed) == 0 and first.removed_ids.numel() == 0
+
+    _feed(mapper, [0.3, 0.6, 0.9], first_id=1)
+    assert mapper.process_pending() == 3
+    delta = mapper.pop_delta()
+    assert len(delta.added) > 0 and len(delta.changed) > 0
+    assert set(delta.added.ids.tolist()).isdisjoint(delta.changed.ids.tolist())
+    assert set(delta.changed.ids.tolist()) <= set(first.added.ids.tolist())
+    assert set(delta.removed_ids.tolist()).isdisjoint(mapper.map.ids.tolist())
+    assert mapper.map.ids.unique().numel() == len(mapper.map)
+    assert len(mapper.pop_delta().added) == 0
+
+    for a in (0.15, 0.45, 0.75):  # views between keyframes
+        T = orbit_pose(a)
+        image, _ = raycast(T, CAMERA)
+        out = mapper.render(T)
+        assert out.color.shape == (64, 96, 3)
+        assert psnr(out.color, image) > 25.0, f"view at angle {a}"
+        assert float(out.alpha.mean()) > 0.9
+
+    mapper.save(tmp_path / "map.ply")
+    gmap, doc = load_map(tmp_path / "map.ply")
+    assert len(gmap) == len(mapper.map) and sorted(doc["keyframes"]) == [0, 1, 2, 3]
+    assert doc["keyframes"][2]["timestamp_ns"] == 2000 and doc["camera"]["fx"] == 60.0
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.5])
+def test_keyframe_pose_and_scale_update_moves_the_map_with_it(scale):
+    mapper = _mapper(iterations=2)
+    _feed(mapper, [0.0])
+    mapper.process_pending()
+    T_old = mapper.keyframes[0].T_WC.clone()
+    before = mapper.render(T_old)
+    opacity, colors = mapper.map.opacity_logits.clone(), mapper.map.colors.clone()
+    T_new = se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, -0.1, 0.4], dtype=torch.float64)) @ T_old
+    mapper.update_keyframe_poses({0: T_new, 99: T_new}, {0: scale})
+    mapper.process_pending()
+    after = mapper.render(T_new)
+    # Same view of the same (moved, rescaled) map: opacity and depth agree to float32 rounding. Colour too,
+    # except where float32 rounding swaps the depth order of overlapping Gaussians at (nearly) equal depth:
+    # a handful of pixels, hence the PSNR bound.
+    torch.testing.assert_close(after.alpha, before.alpha, atol=1e-4, rtol=0)
+    torch.testing.assert_close(after.depth, scale * before.depth, atol=2e-3 * scale, rtol=0)
+    assert psnr(after.color, before.color) > 45.0
+    assert torch.equal(mapper.map.opacity_logits, opacity) and torch.equal(mapper.map.colors, colors)
+    assert torch.equal(mapper.keyframes[0].T_WC, T_new)
+    assert mapper.stats.ignored_pose_ids == [99]
+    assert len(mapper.pop_delta().added) == len(mapper.map)  # still "added": never published before
+
+
+def test_async_mapping_grey_images_and_refinement():
+    mapper = _mapper(iterations=3)
+    mapper.run_async()
+    try:
+        for i, a in enumerate([0.0, 0.4]):
+            T = orbit_pose(a)
+            image, depth = raycast(T, CAMERA)
+            grey = (image.mean(-1).numpy() * 255).astype(np.uint8)  # (H, W) uint8, as EuRoC delivers
+            mapper.add_keyframe(i, T, grey, depth.numpy())
+        mapper.wait_idle()
+    finally:
+        mapper.stop()
+    assert mapper.stats.keyframes == 2 and mapper.pending() == 0
+    T = orbit_pose(0.2)
+    image, _ = raycast(T, CAMERA)
+    grey_ref = image.mean(-1, keepdim=True).expand(-1, -1, 3)
+    before = psnr(mapper.render(T).color, grey_ref)
+    mapper.refine(30)
+    after = psnr(mapper.render(T).color, grey_ref)
+    assert before > 20.0 and after > before - 0.5 and math.isfinite(after)
+
+
+def test_mapper_rejects_distorted_cameras():
+    cam = CameraModel(96, 64, 60.0, 60.0, 47.5, 31.5, "radtan", (0.1, 0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="pinhole"):
+        GaussianMapper(MapperConfig(), cam)
+
+
+def test_new_keyframes_add_gaussians_only_where_the_map_is_thin_and_pruning_removes():
+    mapper = _mapper(iterations=3)
+    _feed(mapper, [0.0, 0.0])  # the same view twice: the second adds (almost) nothing
+    mapper.step()
+    n_first = len(mapper.map)
+    mapper.step()
+    assert len(mapper.map) - n_first < 0.05 * n_first
+    # make three Gaussians transparent and three oversized: the next keyframe's pruning removes them
+    mapper.pop_delta()
+    doomed = mapper.map.ids[:6].tolist()
+    with torch.no_grad():
+        mapper.map.opacity_logits[:3] = -12.0
+        mapper.map.log_scales[3:6] = 2.0
+    _feed(mapper, [1.2], first_id=2)  # a view of new walls: many new Gaussians
+    mapper.step()
+    delta = mapper.pop_delta()
+    assert len(delta.added) > 0.1 * n_first
+    assert set(doomed) <= set(delta.removed_ids.tolist())
+    assert set(doomed).isdisjoint(mapper.map.ids.tolist())
+    assert mapper.stats.pruned >= 6

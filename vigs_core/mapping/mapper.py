@@ -1,0 +1,490 @@
+"""Online Gaussian-splatting mapper (VIGS-SLAM Sec. 3.3).
+
+For every new keyframe (image, depth, pose ``T_WC``):
+
+1. **Expansion / densification where the map is thin**: the current map is rendered at the keyframe; pixels
+   whose accumulated opacity is below ``densify_alpha`` or whose measured depth lies clearly in front of
+   the rendered surface (``d < (1 - densify_depth_ratio) depth/alpha``) are unprojected into new Gaussians
+   anchored to the keyframe (:func:`vigs_core.mapping.init.gaussians_from_depth`; all pixels for the
+   first keyframe).
+2. **Optimisation**: ``iterations`` (N = 10) Adam steps, each rendering one keyframe of the schedule
+   ``[new] + shuffle(local window + global_keyframes random older ones)`` (cycled), with the loss
+
+       L = lambda_c |C - C_gt|_1 + lambda_d |D - D_gt|_1 (valid depth only) + lambda_iso |s - mean(s)|_1
+
+   (means over pixels; the isotropic term over the visible Gaussians' scales ``s`` (metres) penalises
+   needle-like Gaussians). Poses are fixed: the tracker owns them.
+3. **Pruning**: Gaussians with opacity below ``prune_min_opacity`` or whose largest standard deviation
+   exceeds ``prune_max_angular`` times their distance to their anchor keyframe (oversized) are removed.
+
+Keyframe pose/scale corrections move anchored Gaussians in one batch (:mod:`vigs_core.mapping.anchor`).
+The mapper is fed through a queue: :meth:`GaussianMapper.add_keyframe` and
+:meth:`GaussianMapper.update_keyframe_poses` only enqueue, so tracking never waits for mapping; events are
+applied in order by :meth:`GaussianMapper.step` (synchronous use) or by the worker thread of
+:meth:`GaussianMapper.run_async`. Rendering and saving take the map lock between optimisation steps.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import random
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from vigs_core.geometry import se3_inverse
+from vigs_core.mapping.anchor import anchored_update
+from vigs_core.mapping.gaussians import PARAMETER_FIELDS, GaussianMap
+from vigs_core.mapping.init import gaussians_from_depth
+from vigs_core.mapping.metrics import psnr, ssim
+from vigs_core.mapping.optimizer import RowAdam
+from vigs_core.mapping.ply import save_map
+from vigs_core.mapping.rasterizer import RenderCamera, RenderOutput, RenderSettings, make_rasterizer
+
+
+@dataclass
+class MapperConfig:
+    """Settings of :class:`GaussianMapper` (defaults: VIGS-SLAM's schedule, CPU-sized resolution).
+
+    Args:
+        iterations: optimisation steps per new keyframe (N).
+        window: size of the local window of most recent keyframes (including the new one).
+        global_keyframes: random keyframes from outside the window added to each schedule.
+        render_scale: rendering/optimisation resolution relative to the camera (0.5: 752x480 -> 376x240).
+        init_stride: pixel stride (at render resolution) when unprojecting depth into Gaussians.
+        init_scale: initial standard deviation in pixel spacings (see ``gaussians_from_depth``).
+        lambda_color: weight of the L1 colour term.
+        lambda_depth: weight of the L1 depth term (metres).
+        lambda_iso: weight of the isotropic regulariser.
+        lr_means: Adam step for means, metres.
+        lr_log_scales: Adam step for log scales.
+        lr_quats: Adam step for quaternions.
+        lr_opacity: Adam step for opacity logits.
+        lr_colors: Adam step for RGB colours.
+        densify_alpha: pixels of a new keyframe rendering less opaque than this get new Gaussians.
+        densify_depth_ratio: pixels whose measured depth is this fraction in front of the map get new Gaussians.
+        prune_min_opacity: Gaussians less opaque than this are removed.
+        prune_max_angular: Gaussians larger than this (std / distance to the anchor keyframe, rad) are removed.
+        backend: rasterizer backend: "auto", "torch" or "gsplat".
+        tile_size: tile edge of the reference rasterizer, pixels.
+        max_per_tile: Gaussians composited per tile at most (reference rasterizer).
+        seed: seed of the keyframe sampler.
+    """
+
+    iterations: int = 10
+    window: int = 8
+    global_keyframes: int = 2
+    render_scale: float = 0.5
+    init_stride: int = 3
+    init_scale: float = 0.5
+    lambda_color: float = 0.9
+    lambda_depth: float = 0.1
+    lambda_iso: float = 10.0
+    lr_means: float = 1e-3
+    lr_log_scales: float = 5e-3
+    lr_quats: float = 2e-3
+    lr_opacity: float = 5e-2
+    lr_colors: float = 5e-3
+    densify_alpha: float = 0.6
+    densify_depth_ratio: float = 0.1
+    prune_min_opacity: float = 0.01
+    prune_max_angular: float = 0.1
+    backend: str = "auto"
+    tile_size: int = 8
+    max_per_tile: int = 96
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0 or self.window < 1 or self.global_keyframes < 0:
+            raise ValueError(
+                f"need iterations >= 0, window >= 1, global_keyframes >= 0; got {self.iterations}, "
+                f"{self.window}, {self.global_keyframes}"
+            )
+        if not 0 < self.render_scale <= 1:
+            raise ValueError(f"render_scale must be in (0, 1], got {self.render_scale}")
+
+
+@dataclass
+class Keyframe:
+    """A keyframe as the mapper keeps it: pose (4, 4) float64, ``image_u8`` (h, w, 3) uint8 and ``depth``
+    (h, w) float32 metres (0 where invalid), both at render resolution (uint8 keeps long runs small)."""
+
+    id: int
+    T_WC: torch.Tensor
+    image_u8: torch.Tensor
+    depth: torch.Tensor
+    timestamp_ns: int | None = None
+
+    def image(self) -> torch.Tensor:
+        """(h, w, 3) float32 RGB in [0, 1]."""
+        return self.image_u8.to(self.depth.dtype) / 255.0
+
+
+@dataclass
+class MapDelta:
+    """Changes since the previous :meth:`GaussianMapper.pop_delta`: Gaussians ``added`` and ``changed``
+    (full current rows) and the persistent ids of those ``removed``."""
+
+    added: GaussianMap
+    changed: GaussianMap
+    removed_ids: torch.Tensor
+
+
+@dataclass
+class MapperStats:
+    """Counters of a mapper: keyframes integrated, seconds spent on them, Gaussians added/pruned."""
+
+    keyframes: int = 0
+    mapping_seconds: float = 0.0
+    added: int = 0
+    pruned: int = 0
+    pose_updates: int = 0
+    ignored_pose_ids: list[int] = field(default_factory=list)
+
+
+def _prepare_image(image, size: tuple[int, int]) -> torch.Tensor:
+    """(H, W) / (H, W, 1) / (H, W, 3) uint8 or float [0, 1] -> (h, w, 3) float32 at ``size = (w, h)``."""
+    img = image.detach().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    if img.dtype == np.uint8:
+        img = img.astype(np.float32) / 255.0
+    img = img.astype(np.float32)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"keyframe image must be (H, W), (H, W, 1) or (H, W, 3), got shape {img.shape}")
+    if (img.shape[1], img.shape[0]) != size:
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(np.ascontiguousarray(img))
+
+
+def _prepare_depth(depth, size: tuple[int, int]) -> torch.Tensor:
+    """(H, W) metres -> (h, w) float32 at ``size = (w, h)`` (nearest neighbour; invalid -> 0)."""
+    d = depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+    d = np.squeeze(d).astype(np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"keyframe depth must be (H, W), got shape {np.shape(depth)}")
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    if (d.shape[1], d.shape[0]) != size:
+        d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy(np.ascontiguousarray(d))
+
+
+class GaussianMapper:
+    """The online mapper (see the module docstring).
+
+    Args:
+        config: :class:`MapperConfig`.
+        camera: undistorted pinhole intrinsics of the keyframe images (``vigs_core.camera.CameraModel``
+            with ``distortion == "none"``, or any object with width/height/fx/fy/cx/cy).
+        device: torch device of the map.
+    """
+
+    def __init__(self, config: MapperConfig | None, camera, device: torch.device | str = "cpu") -> None:
+        if getattr(camera, "distortion", "none") != "none":
+            raise ValueError(
+                f"GaussianMapper needs undistorted images and a pinhole camera, got distortion="
+                f"{camera.distortion!r}; undistort the images and pass camera.pinhole()"
+            )
+        self.config = config or MapperConfig()
+        self.camera = camera
+        self.device = torch.device(device)
+        self.render_camera = RenderCamera.from_camera(camera, self.config.render_scale)
+        self.rasterizer = make_rasterizer(
+            self.config.backend, RenderSettings(self.config.tile_size, self.config.max_per_tile)
+        )
+        c = self.config
+        self.optimizer = RowAdam(
+            {
+                "means": c.lr_means,
+                "log_scales": c.lr_log_scales,
+                "quats": c.lr_quats,
+                "opacity_logits": c.lr_opacity,
+                "colors": c.lr_colors,
+            }
+        )
+        self.map = GaussianMap.empty(device=self.device)
+        self.keyframes: dict[int, Keyframe] = {}
+        self.stats = MapperStats()
+        self._next_id = 0
+        self._rng = random.Random(c.seed)
+        self._lock = threading.RLock()
+        self._events: queue.Queue = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._new = torch.zeros(0, dtype=torch.bool, device=self.device)
+        self._dirty = torch.zeros(0, dtype=torch.bool, device=self.device)
+        self._removed: list[torch.Tensor] = []
+
+    # ------------------------------------------------------------------ public API: feeding
+    def add_keyframe(self, kf_id: int, T_WC, image, depth, timestamp_ns: int | None = None) -> None:
+        """Queue a keyframe: ``T_WC`` (4, 4), ``image`` (H, W[, 3]) uint8 or float [0, 1] RGB/grey, ``depth``
+        (H', W') metres (0 or non-finite = invalid; any resolution, resampled to the render size)."""
+        size = (self.render_camera.width, self.render_camera.height)
+        kf = Keyframe(
+            int(kf_id),
+            torch.as_tensor(T_WC, dtype=torch.float64).reshape(4, 4).clone(),
+            (_prepare_image(image, size) * 255.0).round_().to(torch.uint8).to(self.device),
+            _prepare_depth(depth, size).to(self.device),
+            timestamp_ns,
+        )
+        self._events.put(("keyframe", kf))
+
+    def update_keyframe_poses(self, poses: dict[int, object], scales: dict[int, float] | None = None) -> None:
+        """Queue corrected keyframe poses ``{kf_id: T_WC (4, 4)}`` and optional depth scale corrections
+        ``{kf_id: s}``; anchored Gaussians follow (Eq. 6-7). Unknown ids are ignored (listed in ``stats``)."""
+        poses = {int(k): torch.as_tensor(v, dtype=torch.float64).reshape(4, 4).clone() for k, v in poses.items()}
+        self._events.put(("poses", poses, dict(scales or {})))
+
+    def pending(self) -> int:
+        """Number of queued events not yet applied."""
+        return self._events.qsize()
+
+    def step(self) -> bool:
+        """Apply the next queued event (synchronous use); False when the queue was empty."""
+        try:
+            event = self._events.get_nowait()
+        except queue.Empty:
+            return False
+        try:
+            self._apply(event)
+        finally:
+            self._events.task_done()
+        return True
+
+    def process_pending(self) -> int:
+        """Apply every queued event; returns how many."""
+        count = 0
+        while self.step():
+            count += 1
+        return count
+
+    def run_async(self) -> None:
+        """Start a worker thread that applies queued events as they arrive (idempotent)."""
+        if self._worker is not None and self._worker.is_alive():
+            return
+        self._stop.clear()
+        self._worker = threading.Thread(target=self._work, name="gaussian-mapper", daemon=True)
+        self._worker.start()
+
+    def wait_idle(self) -> None:
+        """Block until every queued event has been applied (by the worker or by :meth:`step`)."""
+        self._events.join()
+
+    def stop(self) -> None:
+        """Stop the worker thread after the event it is applying (queued events stay queued)."""
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+
+    # ------------------------------------------------------------------ public API: reading
+    @torch.no_grad()
+    def render(self, T_WC, scale: float | None = None) -> RenderOutput:
+        """Render the map from ``T_WC`` (4, 4) at ``scale`` x the camera (default: the render scale).
+        Colours are clamped to [0, 1]."""
+        cam = self.render_camera if scale is None else RenderCamera.from_camera(self.camera, scale)
+        with self._lock:
+            out = self._render(self.map, torch.as_tensor(T_WC, dtype=torch.float64), cam)
+        out.color = out.color.clamp(0.0, 1.0)
+        return out
+
+    def evaluate(self, views) -> dict:
+        """Render quality on ``views``, an iterable of ``(T_WC (4, 4), image)`` (image as for
+        :meth:`add_keyframe`; compared at the render resolution): ``{"psnr", "ssim", "frames"}`` (means, dB).
+        Use frames that were not keyframes for the paper's protocol."""
+        size = (self.render_camera.width, self.render_camera.height)
+        p, s = [], []
+        for T_WC, image in views:
+            ref = _prepare_image(image, size).to(self.device)
+            out = self.render(T_WC)
+            p.append(psnr(out.color, ref))
+            s.append(ssim(out.color, ref))
+        if not p:
+            return {"psnr": math.nan, "ssim": math.nan, "frames": 0}
+        return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "frames": len(p)}
+
+    def snapshot(self) -> GaussianMap:
+        """A detached copy of the current map."""
+        with self._lock:
+            return self.map.detached()
+
+    def pop_delta(self) -> MapDelta:
+        """Gaussians added / changed / removed since the previous call (added wins over changed)."""
+        with self._lock:
+            added = self.map.select(self._new)
+            changed = self.map.select(self._dirty & ~self._new)
+            removed = torch.cat(self._removed) if self._removed else torch.zeros(0, dtype=torch.int64)
+            self._new.zero_()
+            self._dirty.zero_()
+            self._removed = []
+        return MapDelta(added, changed, removed.cpu())
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map as ``path`` (3DGS PLY) plus the keyframe sidecar; returns the sidecar path."""
+        with self._lock:
+            gmap = self.map.detached()
+            poses = {k: kf.T_WC for k, kf in self.keyframes.items()}
+            stamps = {k: kf.timestamp_ns for k, kf in self.keyframes.items() if kf.timestamp_ns is not None}
+        cam = {name: getattr(self.camera, name) for name in ("width", "height", "fx", "fy", "cx", "cy")}
+        return save_map(path, gmap, poses, stamps, cam, {"mapper_config": asdict(self.config)})
+
+    def refine(self, iterations: int) -> None:
+        """Final colour refinement: ``iterations`` steps over keyframes drawn uniformly from all of them, with
+        the colour and isotropic terms only (no depth, densification or pruning), as MonoGS / Splat-SLAM do
+        after the sequence. Queued events are not applied here: call :meth:`process_pending` (or
+        :meth:`wait_idle` when running asynchronously) first."""
+        ids = sorted(self.keyframes)
+        if not ids:
+            return
+        for _ in range(iterations):
+            with self._lock:
+                self._optimise_on(self.keyframes[self._rng.choice(ids)], lambda_depth=0.0)
+
+    # ------------------------------------------------------------------ internals
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            try:
+                event = self._events.get(timeout=0.05)
+            except queue.Empty:
+                continue
+            try:
+                self._apply(event)
+            finally:
+                self._events.task_done()
+
+    def _apply(self, event: tuple) -> None:
+        if event[0] == "keyframe":
+            self._integrate(event[1])
+        else:
+            self._move_keyframes(event[1], event[2])
+
+    def _render(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> RenderOutput:
+        T_CW = se3_inverse(T_WC.to(self.device)).to(gmap.dtype)
+        return self.rasterizer(
+            gmap.means, gmap.unit_quats(), gmap.scales(), gmap.opacities(), gmap.colors, T_CW, camera
+        )
+
+    def _append(self, new: GaussianMap) -> None:
+        n = len(new)
+        if n == 0:
+            return
+        self.map = self.map.concat(new)
+        self.optimizer.add_rows(n, {k: getattr(new, k) for k in PARAMETER_FIELDS})
+        self._new = torch.cat((self._new, torch.ones(n, dtype=torch.bool, device=self.device)))
+        self._dirty = torch.cat((self._dirty, torch.zeros(n, dtype=torch.bool, device=self.device)))
+        self.stats.added += n
+
+    def _remove(self, drop: torch.Tensor) -> None:
+        if not bool(drop.any()):
+            return
+        self._removed.append(self.map.ids[drop & ~self._new].cpu())
+        keep = ~drop
+        self.map = self.map.select(keep)
+        self.optimizer.keep_rows(keep)
+        self._new = self._new[keep]
+        self._dirty = self._dirty[keep]
+        self.stats.pruned += int(drop.sum())
+
+    def _integrate(self, kf: Keyframe) -> None:
+        c = self.config
+        t0 = time.perf_counter()
+        with self._lock:
+            self.keyframes[kf.id] = kf
+            mask = None
+            if len(self.map) > 0:
+                with torch.no_grad():
+                    out = self._render(self.map, kf.T_WC, self.render_camera)
+                expected = out.depth / out.alpha.clamp_min(1e-6)
+                mask = (out.alpha < c.densify_alpha) | (kf.depth < (1.0 - c.densify_depth_ratio) * expected)
+            new = gaussians_from_depth(
+                kf.image(), kf.depth, kf.T_WC.float(), self.render_camera, kf.id, self._next_id,
+                c.init_stride, c.init_scale, mask,
+            )  # fmt: skip
+            self._next_id += len(new)
+            self._append(new)
+        for kf_step in self._schedule(kf.id):
+            with self._lock:
+                self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
+        with self._lock:
+            self._prune()
+        self.stats.keyframes += 1
+        self.stats.mapping_seconds += time.perf_counter() - t0
+
+    def _schedule(self, new_id: int) -> list[int]:
+        """Keyframe ids for the ``iterations`` steps: the new keyframe first, then the rest of the local
+        window and ``global_keyframes`` random older ones, shuffled, cycled to length ``iterations``."""
+        c = self.config
+        ids = sorted(self.keyframes)
+        window = [k for k in ids[-c.window :] if k != new_id]
+        older = ids[: max(0, len(ids) - c.window)]
+        extra = self._rng.sample(older, min(c.global_keyframes, len(older)))
+        rest = window + extra
+        self._rng.shuffle(rest)
+        cycle = [new_id] + rest
+        return [cycle[i % len(cycle)] for i in range(c.iterations)]
+
+    def _optimise_on(self, kf: Keyframe, lambda_depth: float) -> None:
+        c = self.config
+        if len(self.map) == 0:
+            return
+        params = {k: getattr(self.map, k) for k in PARAMETER_FIELDS}
+        for p in params.values():
+            p.requires_grad_(True)
+        try:
+            out = self._render(self.map, kf.T_WC, self.render_camera)
+            if out.visible.numel() == 0:
+                return
+            loss = c.lambda_color * (out.color - kf.image()).abs().mean()
+            valid = kf.depth > 0
+            if lambda_depth > 0 and bool(valid.any()):
+                loss = loss + lambda_depth * (out.depth[valid] - kf.depth[valid]).abs().mean()
+            if c.lambda_iso > 0:
+                s = self.map.scales()[out.visible]
+                loss = loss + c.lambda_iso * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+            loss.backward()
+            self.optimizer.step(params, out.visible)
+            self._dirty[out.visible] = True
+        finally:
+            for p in params.values():
+                p.requires_grad_(False)
+                p.grad = None
+
+    @torch.no_grad()
+    def _prune(self) -> None:
+        c = self.config
+        if len(self.map) == 0:
+            return
+        ids = sorted(self.keyframes)
+        centres = torch.stack([self.keyframes[k].T_WC[:3, 3] for k in ids]).to(self.device, self.map.dtype)
+        pos = torch.searchsorted(torch.tensor(ids, device=self.device), self.map.anchor_ids)
+        dist = (self.map.means - centres[pos.clamp_max(len(ids) - 1)]).norm(dim=1)
+        too_big = self.map.scales().max(dim=1).values > c.prune_max_angular * dist
+        drop = (self.map.opacities() < c.prune_min_opacity) | too_big
+        self._remove(drop)
+
+    def _move_keyframes(self, poses: dict[int, torch.Tensor], scales: dict[int, float]) -> None:
+        with self._lock:
+            known = {k: v for k, v in poses.items() if k in self.keyframes}
+            self.stats.ignored_pose_ids.extend(sorted(set(poses) - set(known)))
+            if not known:
+                return
+            known_scales = {k: float(s) for k, s in scales.items() if k in known}
+            old = {k: self.keyframes[k].T_WC for k in known}
+            means, quats, log_scales, moved = anchored_update(
+                self.map.means, self.map.quats, self.map.log_scales, self.map.anchor_ids, old, known, known_scales
+            )
+            self.map.means, self.map.quats, self.map.log_scales = means, quats, log_scales
+            self.optimizer.reset_rows(moved)  # world-frame moments no longer match the moved Gaussians
+            self._dirty |= moved
+            for k, T in known.items():
+                kf = self.keyframes[k]
+                kf.T_WC = T
+                kf.depth = kf.depth * known_scales.get(k, 1.0)
+            self.stats.pose_updates += 1

@@ -1,0 +1,54 @@
+"""Render-quality metrics: PSNR and SSIM.
+
+PSNR = 10 log10(peak^2 / MSE) (dB). SSIM (Wang et al. 2004, Eq. 13) with the usual settings: an 11x11
+Gaussian window of standard deviation 1.5 px, ``C1 = (0.01 peak)^2``, ``C2 = (0.03 peak)^2``, statistics
+per channel over the 'valid' window positions (no padding), averaged over positions and channels.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def _as_chw(img: torch.Tensor) -> torch.Tensor:
+    """(H, W) or (H, W, C) -> (C, H, W) float64."""
+    img = torch.as_tensor(img)
+    if img.dim() == 2:
+        img = img[..., None]
+    if img.dim() != 3:
+        raise ValueError(f"images must be (H, W) or (H, W, C), got shape {tuple(img.shape)}")
+    return img.permute(2, 0, 1).to(torch.float64)
+
+
+def psnr(img: torch.Tensor, ref: torch.Tensor, peak: float = 1.0) -> float:
+    """PSNR in dB of ``img`` against ``ref`` ((H, W) or (H, W, C), same shape); ``inf`` when identical."""
+    a, b = _as_chw(img), _as_chw(ref)
+    if a.shape != b.shape:
+        raise ValueError(f"psnr needs images of the same shape, got {tuple(img.shape)} and {tuple(ref.shape)}")
+    mse = float(((a - b) ** 2).mean())
+    return math.inf if mse == 0.0 else 10.0 * math.log10(peak * peak / mse)
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor, peak: float = 1.0, window: int = 11, sigma: float = 1.5) -> float:
+    """Mean SSIM of ``img`` against ``ref`` ((H, W) or (H, W, C), same shape, at least ``window`` px)."""
+    a, b = _as_chw(img), _as_chw(ref)
+    if a.shape != b.shape:
+        raise ValueError(f"ssim needs images of the same shape, got {tuple(img.shape)} and {tuple(ref.shape)}")
+    if min(a.shape[1:]) < window:
+        raise ValueError(f"ssim needs images of at least {window}x{window} px, got {tuple(a.shape[1:])}")
+    x = torch.arange(window, dtype=torch.float64) - (window - 1) / 2.0
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    kernel = (g[:, None] * g[None, :])[None, None]  # (1, 1, w, w)
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.conv2d(t[:, None], kernel)[:, 0]
+
+    c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
+    mu_a, mu_b = blur(a), blur(b)
+    var_a = blur(a * a) - mu_a**2
+    var_b = blur(b * b) - mu_b**2
+    cov = blur(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    return float(s.mean())
