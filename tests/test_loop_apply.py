@@ -1,0 +1,155 @@
+"""Applying PGBA corrections: the frontend's keyframes, disparities and frames move as the Sim(3) says; the
+driver runs loop closure beside a DenseOdometry (detection and PGBA on the worker thread) and corrects it; PGBA
+never blocks the caller."""
+import math
+import time
+
+import numpy as np
+import torch
+
+from loop_synthetic import circle_sequence, drifted_chain
+from test_loop_pose_graph import circle_poses, odometry_graph
+from vigs_core.frontend import DISFlowEstimator, PixelGrid
+from vigs_core.frontend.correspondence import Correspondences
+from vigs_core.frontend.odometry import DenseOdometry, Keyframe, _Frame  # the records the hook edits
+from vigs_core.geometry import se3_inverse, sim3_act, sim3_exp
+from vigs_core.loop import (LoopClosure, LoopClosureDriver, LoopConfig, LoopEdge, apply_to_odometry,
+                            corrected_pose, corrections_for)
+from vigs_core.solver import Intrinsics, pixel_rays
+
+D = torch.float64
+W, H = 160, 120
+INTR = Intrinsics(100.0, 100.0, 79.5, 59.5)
+GRID = PixelGrid(W, H, 8)
+
+
+def keyframe_points(odo, k):
+    """World points (P, 3) of keyframe k's grid from its pose and disparities."""
+    kf = odo.keyframes[k]
+    cam = pixel_rays(torch.from_numpy(odo.grid.coords()), odo.intr) / kf.disp[:, None]
+    return cam @ se3_inverse(kf.pose)[:3, :3].T + se3_inverse(kf.pose)[:3, 3]
+
+
+def small_odometry(n=4):
+    odo = DenseOdometry(INTR, W, H)
+    gen = torch.Generator().manual_seed(3)
+    image = np.zeros((H, W), dtype=np.uint8)
+    for k in range(n):
+        T_wc = sim3_exp(torch.tensor([0.3 * k, 0.05 * k, 0.0, 0.0, 0.1 * k, 0.0, 0.0], dtype=D))
+        disp = 0.2 + torch.rand(GRID.size, generator=gen, dtype=D)
+        odo.keyframes[k] = Keyframe(k, 100 * k, image, se3_inverse(T_wc), disp)
+        for m in range(2):  # the keyframe's frame and one tracked frame after it
+            rel = torch.eye(4, dtype=D) if m == 0 else se3_inverse(sim3_exp(torch.tensor([0.1, 0, 0, 0, 0.02, 0, 0], dtype=D)))
+            odo.frames.append(_Frame(100 * k + m, ref=k, rel=rel, odom=rel @ odo.keyframes[k].pose, keyframe=m == 0))
+    return odo
+
+
+def test_apply_to_odometry_moves_keyframes_depths_and_frames_by_the_similarity():
+    odo = small_odometry()
+    points = {k: keyframe_points(odo, k) for k in odo.keyframes}
+    _, frame_poses = odo.final_frame_poses()
+    centres = se3_inverse(frame_poses)[:, :3, 3]
+    C = {0: torch.eye(4, dtype=D), 1: sim3_exp(torch.tensor([0.2, -0.1, 0.05, 0.02, 0.1, -0.05, 0.3], dtype=D)),
+         2: sim3_exp(torch.tensor([0.1, 0.3, 0.0, 0.0, -0.1, 0.05, -0.2], dtype=D))}
+    updates = apply_to_odometry(odo, C)
+    assert set(updates) == {0, 1, 2, 3}  # keyframe 3 is newer than the snapshot: it gets keyframe 2's correction
+    for k in odo.keyframes:
+        Ck = C[min(k, 2)]
+        np.testing.assert_allclose(keyframe_points(odo, k).numpy(), sim3_act(Ck, points[k]).numpy(), atol=1e-9)
+        T, c = updates[k]
+        np.testing.assert_allclose(T.numpy(), se3_inverse(odo.keyframes[k].pose).numpy(), atol=1e-12)
+        assert math.isclose(c, float(torch.linalg.det(Ck[:3, :3])) ** (1 / 3), rel_tol=1e-9)
+    _, after = odo.final_frame_poses()
+    refs = [f.ref for f in odo.frames]
+    for n, k in enumerate(refs):   # every frame keeps its place relative to its keyframe
+        np.testing.assert_allclose(se3_inverse(after[n])[:3, 3].numpy(), sim3_act(C[min(k, 2)], centres[n:n + 1])[0].numpy(),
+                                   atol=1e-9)
+    # the motion model reads the two latest causal poses: they follow the correction
+    np.testing.assert_allclose(odo.frames[-1].odom.numpy(), after[-1].numpy(), atol=1e-12)
+
+
+def test_corrections_for_leaves_out_older_ids():
+    C = {3: torch.eye(4, dtype=D), 4: 2 * torch.eye(4, dtype=D)}
+    out = corrections_for([1, 3, 4, 7], C)
+    assert sorted(out) == [3, 4, 7] and torch.equal(out[7], C[4])
+
+
+def test_pgba_runs_beside_the_caller():
+    """A large pose graph: queuing PGBA returns at once, the result arrives later through poll()."""
+    torch.set_num_threads(1)
+    truth = circle_poses(160)
+    poses, _, _, _ = odometry_graph(truth, drift_rot=0.002, drift_scale=0.002)
+    closure = LoopClosure(LoopConfig(asynchronous=True), DISFlowEstimator(GRID), INTR)
+    for k in range(160):
+        closure.graph.add_keyframe(k)
+    rel = torch.linalg.inv(truth[0]) @ truth[159]
+    closure.graph.add_loop(LoopEdge(0, 159, rel, torch.eye(7, dtype=D) * 1e4, 1.0))
+    closure._pending_loops = 1  # as the detector does on acceptance
+    t0 = time.perf_counter()
+    assert closure.start_pgba({k: poses[k] for k in range(160)})
+    queued = time.perf_counter() - t0
+    assert closure.poll() is None   # the caller has control back while the worker optimises
+    assert not closure.start_pgba({k: poses[k] for k in range(160)})  # one PGBA at a time
+    result = closure.wait()
+    assert result is not None and result.seconds > queued
+    assert closure.poll() is None  # handed out once
+    err_before = (poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
+    fixed = torch.stack([corrected_pose(result.corrections[k], poses[k])[0] for k in range(160)])
+    assert (fixed[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max() < 0.3 * err_before
+    closure.close()
+
+
+def test_driver_closes_the_loop_of_a_drifting_odometry():
+    torch.set_num_threads(1)
+    n = 66
+    truth, images, true_depths = circle_sequence(n, W, H, INTR.fx, GRID.stride)
+    est, sigma = drifted_chain(truth, rot_per_step=0.0015, log_scale_per_step=0.006, trans_noise=0.002)
+    odo = DenseOdometry(INTR, W, H)
+    driver = LoopClosureDriver(LoopConfig(), odo)
+    flow = DISFlowEstimator(GRID)
+    disp0 = [1.0 / (true_depths[k] * sigma[k]) for k in range(n)]
+    for k in range(n):
+        # the frontend's state after each keyframe's BA: the drifting odometry continues from the current
+        # (possibly corrected) previous keyframe, in its current depth units
+        T_wc, disp = est[0], disp0[0]
+        if k > 0:
+            prev = odo.keyframes[k - 1]
+            f = float((disp0[k - 1] / prev.disp).median())   # depth scale applied to k-1 by corrections so far
+            rel = torch.linalg.inv(est[k - 1]) @ est[k]
+            rel[:3, 3] *= f
+            T_wc, disp = se3_inverse(prev.pose) @ rel, disp0[k] / f
+        odo.keyframes[k] = Keyframe(k, 50_000_000 * k, images[k], se3_inverse(T_wc), disp)
+        odo.frames.append(_Frame(50_000_000 * k, ref=k, rel=torch.eye(4, dtype=D), odom=se3_inverse(T_wc), keyframe=True))
+        if k > 0:
+            for a, b in ((k - 1, k), (k, k - 1)):
+                c = flow.estimate(images[a], images[b])
+                odo.edges[(a, b)] = Correspondences(c.target, c.weight, c.mean_flow)
+        driver.step()
+    driver.finish()
+    rep = driver.report()
+    assert rep["loops_found"] >= 1 and rep["corrections_applied"] >= 1 and rep["pgba_runs"] >= 1
+    _, T_cw = odo.keyframe_poses()
+    err_before = (est[:, :3, 3] - truth[:, :3, 3]).norm(dim=1)
+    err_after = (se3_inverse(T_cw)[:, :3, 3] - truth[:, :3, 3]).norm(dim=1)
+    assert err_after.pow(2).mean().sqrt() < 0.3 * err_before.pow(2).mean().sqrt()
+    # disparities follow the scale correction: the last keyframe's depth is close to metric again
+    depth_ratio = (1.0 / odo.keyframes[n - 1].disp) / true_depths[n - 1]
+    assert abs(math.log(float(depth_ratio.median()))) < 0.3 * abs(math.log(float(sigma[-1])))
+
+
+def test_loop_edges_follow_the_depth_units_of_applied_corrections():
+    """A loop measured before keyframe 1's depths were rescaled by 2 relates X_b = X_b' / 2: the graph uses
+    ``Z D(1/2)``."""
+    from vigs_core.loop import KeyframePoseGraph
+
+    graph = KeyframePoseGraph()
+    graph.add_keyframe(0)
+    graph.add_keyframe(1)
+    Z = sim3_exp(torch.tensor([0.3, -0.2, 0.1, 0.05, 0.1, -0.1, 0.2], dtype=D))
+    graph.add_loop(LoopEdge(0, 1, Z, torch.eye(7, dtype=D), 1.0))
+    poses = {0: torch.eye(4, dtype=D), 1: torch.eye(4, dtype=D)}
+    before, _ = graph.build(poses)
+    after, _ = graph.build(poses, {1: 2.0})
+    X_b = torch.tensor([[0.4, -0.3, 2.0]], dtype=D)
+    np.testing.assert_allclose(sim3_act(after.measurements[-1], 2.0 * X_b).numpy(),
+                               sim3_act(before.measurements[-1], X_b).numpy(), atol=1e-12)

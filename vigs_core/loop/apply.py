@@ -1,0 +1,73 @@
+"""Applying PGBA's per-keyframe Sim(3) corrections to the frontend state and to the Gaussian map in one batch
+(VIGS-SLAM Sec. 3.1 "the frontend continues from the corrected states" and Sec. 3.3, Eq. 6-7).
+
+A correction ``C_k = [c R_c, t_c]`` acts on the keyframe's similarity from the left: the keyframe's rigid pose
+``T_WC = [R, t]`` becomes ``S' = C T_WC = [c R_c R, c R_c t + t_c]``, i.e. the rigid pose ``T'_WC = [R_c R,
+c R_c t + t_c]`` with depths scaled by ``c`` (disparities divided by ``c``): a point ``X`` of the keyframe
+(camera frame, old units) lands at ``S' X = T'_WC (c X)``. The mapper's anchored update takes exactly
+``(T'_WC, c)`` per keyframe (:func:`vigs_core.mapping.anchor.anchored_update`). Keyframes created after the
+PGBA's snapshot get the correction of the newest keyframe of the snapshot (they were tracked relative to it).
+"""
+from __future__ import annotations
+
+from typing import Any, Iterable
+
+import torch
+
+from vigs_core.geometry import se3_inverse, sim3_scale
+
+F64 = torch.float64
+
+
+def corrected_pose(C: torch.Tensor, T_WC: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Rigid pose ``T'_WC`` (4, 4) and depth scale ``c`` of a keyframe after the correction ``C`` (4, 4)."""
+    S = C.to(F64) @ torch.as_tensor(T_WC, dtype=F64)
+    c = float(sim3_scale(S))
+    T = S.clone()
+    T[:3, :3] = S[:3, :3] / c
+    return T, c
+
+
+def corrections_for(ids: Iterable[int], corrections: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+    """Corrections for every id in ``ids``: its own, or for ids newer than the snapshot the newest one's; ids
+    older than every corrected one are left out."""
+    if not corrections:
+        return {}
+    newest = max(corrections)
+    return {k: corrections[k] if k in corrections else corrections[newest] for k in ids
+            if k in corrections or k > newest}
+
+
+def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> dict[int, tuple[torch.Tensor, float]]:
+    """Correct a :class:`vigs_core.frontend.DenseOdometry` in place.
+
+    Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; every
+    frame keeps its pose relative to its reference keyframe with the translation scaled by that keyframe's
+    ``c``; the causal poses of the two latest frames (the constant-velocity motion model reads them) are
+    recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
+    """
+    per_kf = corrections_for(sorted(odometry.keyframes), corrections)
+    updates: dict[int, tuple[torch.Tensor, float]] = {}
+    for k, C in per_kf.items():
+        kf = odometry.keyframes[k]
+        T_WC, c = corrected_pose(C, se3_inverse(kf.pose))
+        kf.pose = se3_inverse(T_WC)
+        kf.disp = kf.disp / c
+        updates[k] = (T_WC, c)
+    for f in odometry.frames:
+        if f.ref in updates and f.rel is not None:
+            rel = f.rel.clone()
+            rel[:3, 3] = rel[:3, 3] * updates[f.ref][1]
+            f.rel = rel
+    posed = [f for f in odometry.frames if f.odom is not None and f.ref is not None][-2:]
+    for f in posed:
+        f.odom = f.rel @ odometry.keyframes[f.ref].pose
+    return updates
+
+
+def apply_to_mapper(mapper: Any, updates: dict[int, tuple[torch.Tensor, float]]) -> None:
+    """Queue the corrected keyframe poses and depth scales on a :class:`vigs_core.mapping.mapper.GaussianMapper`:
+    its anchored Gaussians follow in one batch (Eq. 6-7)."""
+    if updates:
+        mapper.update_keyframe_poses({k: T for k, (T, _) in updates.items()},
+                                     {k: c for k, (_, c) in updates.items()})

@@ -1,0 +1,119 @@
+"""Settings of loop closure (VIGS-SLAM Sec. 3.1, "loop closure and PGBA"): detection, verification, loop-edge
+estimation, the relative-pose graph and the PGBA worker. Defaults are the paper's values where it gives them
+(keyframe gap 55, mean flow 22 px, orientation 120 deg) and ours elsewhere (documented per field)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from vigs_core.loop.pose_graph import PoseGraphConfig
+
+
+@dataclass
+class LoopDetectionConfig:
+    """Which old keyframes a new keyframe is compared with.
+
+    Args:
+        min_keyframe_gap: a candidate is at least this many keyframes older than the new one (paper: 55).
+        max_mean_flow_px: candidate when the confidence-weighted mean flow magnitude of the dense
+            correspondences new -> old is below this, pixels at input resolution (paper: 22).
+        max_orientation_deg: candidate only when the current estimates' relative orientation is below this,
+            degrees (paper: 120).
+        min_mean_confidence: and only when the mean correspondence confidence exceeds this, [0, 1] (ours: a
+            flow field without confident matches says nothing about the flow magnitude).
+        max_flow_checks: dense flow is computed for at most this many old keyframes per new keyframe: those
+            passing the orientation test with the highest thumbnail correlation (ours; bounds the cost).
+        thumbnail_size: (width, height) of the zero-mean, unit-norm grey thumbnails used for that ranking.
+        min_keyframes_between_loops: after an accepted loop, new keyframes this close to it are not
+            searched again (avoids stacking near-identical loop edges; ours).
+    """
+
+    min_keyframe_gap: int = 55
+    max_mean_flow_px: float = 22.0
+    max_orientation_deg: float = 120.0
+    min_mean_confidence: float = 0.1
+    max_flow_checks: int = 3
+    thumbnail_size: tuple[int, int] = (32, 24)
+    min_keyframes_between_loops: int = 5
+
+
+@dataclass
+class LoopVerificationConfig:
+    """Geometric verification of a candidate and the loop edge's relative Sim(3) (see :mod:`.two_view`).
+
+    Args:
+        min_confidence: correspondences with a (forward-backward x photometric) confidence below this are
+            not used, [0, 1].
+        min_confident_fraction: at least this fraction of the grid must have confident correspondences in
+            both directions (new -> old and old -> new).
+        pnp_reprojection_px: RANSAC inlier threshold of the PnP initialisation, pixels.
+        min_inlier_fraction: after the Sim(3) refinement, at least this fraction of the confident
+            correspondences must reproject within ``inlier_px`` AND agree in depth (both directions).
+        inlier_px: reprojection inlier threshold, pixels.
+        max_log_depth_ratio: depth agreement: ``|log(z_predicted / z_measured)|`` below this.
+        depth_sigma: standard deviation of the log-depth residuals of the refinement (the keyframes' depth
+            maps disagree by this relative amount; ours).
+        refine_iterations: Gauss-Newton iterations of the two-view Sim(3) refinement.
+        max_drift_fraction: the loop's correction of the current relative estimate (translation) may be at
+            most this fraction of the path length between the two keyframes, plus ``min_drift_m`` (ours:
+            a repeated texture far away along the path fakes a loop that odometry cannot have drifted to).
+        min_drift_m: the translation allowance of a loop between nearby keyframes, in map units.
+        max_drift_rotation_deg: the loop's rotation correction of the current relative estimate at most.
+        max_drift_log_scale: the loop's scale correction at most ``exp(+-this)``.
+        information_scale: multiplies the dense two-view information (the dense residuals are correlated,
+            so their Gauss-Newton information is over-confident; ours).
+    """
+
+    min_confidence: float = 0.3
+    min_confident_fraction: float = 0.3
+    pnp_reprojection_px: float = 2.0
+    min_inlier_fraction: float = 0.6
+    inlier_px: float = 2.0
+    max_log_depth_ratio: float = 0.15
+    depth_sigma: float = 0.05
+    refine_iterations: int = 8
+    max_drift_fraction: float = 0.2
+    min_drift_m: float = 0.1
+    max_drift_rotation_deg: float = 20.0
+    max_drift_log_scale: float = 0.5
+    information_scale: float = 0.01
+
+
+@dataclass
+class LoopGraphConfig:
+    """Odometry edges of the relative-pose graph.
+
+    Args:
+        odometry_neighbours: each new keyframe gets edges to this many previous keyframes (its local window).
+        sigma_rotation_rad: standard deviation of an odometry edge's rotation per unit of information scale,
+            used when no dense-correspondence information is given for the edge, radians.
+        sigma_translation_m: likewise for translation, map units.
+        sigma_log_scale: standard deviation of an odometry edge's log scale (the dense reprojection of one
+            direction does not observe it).
+        sigma_metric_log_scale: once the visual-inertial odometry is metric, each new odometry edge also gets
+            a log-scale prior of this standard deviation (the IMU observes scale; ours).
+    """
+
+    odometry_neighbours: int = 1
+    sigma_rotation_rad: float = 0.002
+    sigma_translation_m: float = 0.005
+    sigma_log_scale: float = 0.01
+    sigma_metric_log_scale: float = 0.002
+
+
+@dataclass
+class LoopConfig:
+    """Loop closure as a whole.
+
+    Args:
+        enabled: run loop closure in the pipeline (``loop.enabled``).
+        detection, verification, graph: see the respective dataclasses.
+        pose_graph: Sim(3) LM settings of the PGBA (Huber on loop edges).
+        asynchronous: run PGBA on a worker thread beside tracking (False: run it inline, for tests).
+    """
+
+    enabled: bool = True
+    detection: LoopDetectionConfig = field(default_factory=LoopDetectionConfig)
+    verification: LoopVerificationConfig = field(default_factory=LoopVerificationConfig)
+    graph: LoopGraphConfig = field(default_factory=LoopGraphConfig)
+    pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    asynchronous: bool = True

@@ -1,0 +1,188 @@
+"""Loop candidate detection and verification for a new keyframe (VIGS-SLAM Sec. 3.1, loop closure).
+
+A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (55) keyframes older:
+
+1. orientation: the current estimates' relative rotation angle ``|Log(R_k^T R_j)|`` must be below 120 deg;
+2. appearance ranking (ours, to bound the cost): the survivors are ranked by the correlation of small
+   zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences;
+3. flow: a candidate needs a confidence-weighted mean flow magnitude ``k -> j`` below 22 px (and a mean
+   confidence above ``min_mean_confidence``);
+4. verification (:func:`vigs_core.loop.two_view.estimate_relative_sim3`): dense two-view consistency in both
+   directions (forward-backward flow confidence, reprojection with the keyframes' depths, depth agreement);
+5. drift plausibility (ours): the measured relative pose may differ from the current relative estimate only
+   by what odometry can have drifted over the path between the two keyframes (translation at most
+   ``max_drift_fraction`` of the path length plus ``min_drift_m``, rotation and scale bounded). A repeated
+   texture seen at another place along the path passes 1-4 (the images agree) but would claim a correction
+   of the whole distance travelled; a true loop after moderate drift does not.
+
+The best verified candidate (most inliers) becomes a loop edge ``(j, k, Z_jk, information)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
+from vigs_core.geometry import sim3_log, so3_log
+from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
+from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
+from vigs_core.solver import Intrinsics
+
+F64 = torch.float64
+
+
+@dataclass
+class KeyframeView:
+    """What loop closure reads of a keyframe.
+
+    Attributes:
+        id: keyframe id (increasing with time).
+        image: (H, W) uint8 grey image (undistorted, the frontend's input).
+        T_WC: (4, 4) float64 current world-from-camera pose estimate (rigid).
+        depth: (P,) float64 depths of the reduced grid pixels, map units (0 = unknown).
+        unit: product of the depth scales applied to this keyframe by loop corrections before the view was
+            taken (its depth units relative to the original ones; see :meth:`KeyframePoseGraph.build`).
+    """
+
+    id: int
+    image: np.ndarray
+    T_WC: torch.Tensor
+    depth: torch.Tensor
+    unit: float = 1.0
+
+
+@dataclass
+class LoopEdge:
+    """A verified loop: ``relative = S_old^{-1} S_new`` (4, 4) with ``information`` (7, 7), measured in the
+    keyframes' depth units ``unit_old``, ``unit_new`` of the time (:attr:`KeyframeView.unit`)."""
+
+    old: int
+    new: int
+    relative: torch.Tensor
+    information: torch.Tensor
+    inlier_fraction: float
+    unit_old: float = 1.0
+    unit_new: float = 1.0
+
+
+@dataclass
+class LoopDecision:
+    """What happened for one new keyframe: the candidates that passed detection (ids), the rejected ones with
+    the reason, and the accepted loop edge (or None)."""
+
+    candidates: list[int] = field(default_factory=list)
+    rejected: dict[int, str] = field(default_factory=dict)
+    accepted: LoopEdge | None = None
+
+
+def thumbnail(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Zero-mean, unit-norm float32 thumbnail (size[1] * size[0],) of a grey image (area averaging)."""
+    small = cv2.resize(image.astype(np.float32), size, interpolation=cv2.INTER_AREA).reshape(-1)
+    small -= small.mean()
+    return small / max(float(np.linalg.norm(small)), 1e-6)
+
+
+def rotation_angle_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
+    """Angle (degrees) of the relative rotation of two poses (4, 4)."""
+    return math.degrees(float(so3_log(T_a[:3, :3].T @ T_b[:3, :3]).norm()))
+
+
+def path_length(positions: torch.Tensor) -> float:
+    """Length of the polyline through positions (N, 3)."""
+    return float((positions[1:] - positions[:-1]).norm(dim=-1).sum()) if positions.shape[0] > 1 else 0.0
+
+
+class LoopDetector:
+    """Proposes, verifies and measures loop edges for new keyframes (module docstring).
+
+    Args:
+        estimator: dense correspondence estimator on ``estimator.grid`` (the frontend's, or a separate one).
+        intrinsics: pinhole intrinsics of the input images.
+        detection, verification: settings.
+    """
+
+    def __init__(self, estimator: CorrespondenceEstimator, intrinsics: Intrinsics,
+                 detection: LoopDetectionConfig | None = None, verification: LoopVerificationConfig | None = None):
+        self.estimator = estimator
+        self.grid: PixelGrid = estimator.grid
+        self.intr = intrinsics
+        self.detection = detection or LoopDetectionConfig()
+        self.verification = verification or LoopVerificationConfig()
+        self._thumbs: dict[int, np.ndarray] = {}
+        self._last_loop_kf: int | None = None
+
+    def _thumb(self, kf: KeyframeView) -> np.ndarray:
+        if kf.id not in self._thumbs:
+            self._thumbs[kf.id] = thumbnail(kf.image, self.detection.thumbnail_size)
+        return self._thumbs[kf.id]
+
+    def candidates(self, new: KeyframeView, history: Sequence[KeyframeView]) -> list[KeyframeView]:
+        """Keyframes of ``history`` old enough and within the orientation bound, best thumbnail match first,
+        at most ``max_flow_checks``."""
+        cfg = self.detection
+        old = [kf for kf in history if kf.id <= new.id - cfg.min_keyframe_gap]
+        old = [kf for kf in old if rotation_angle_deg(kf.T_WC, new.T_WC) < cfg.max_orientation_deg]
+        t_new = self._thumb(new)
+        old.sort(key=lambda kf: -float(self._thumb(kf) @ t_new))
+        return old[:cfg.max_flow_checks]
+
+    def _correspondences(self, src: KeyframeView, dst: KeyframeView) -> tuple[TwoViewCorrespondences, float]:
+        """Dense correspondences ``src -> dst`` and their mean flow (inf without confident matches)."""
+        corr = self.estimator.estimate(src.image, dst.image)
+        weight = np.asarray(corr.weight, dtype=np.float64)
+        flow = corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
+        return (TwoViewCorrespondences(torch.from_numpy(np.asarray(corr.target, dtype=np.float64)),
+                                       torch.from_numpy(weight)), flow)
+
+    def drift_check(self, old: KeyframeView, new: KeyframeView, relative: torch.Tensor,
+                    history: Sequence[KeyframeView]) -> str:
+        """"" when the measured ``S_old^{-1} S_new`` is a plausible drift correction of the current relative
+        estimate, else the reason (module docstring, step 5)."""
+        cfg = self.verification
+        current = torch.linalg.inv(old.T_WC) @ new.T_WC
+        between = torch.stack([kf.T_WC[:3, 3] for kf in history if old.id <= kf.id <= new.id] + [new.T_WC[:3, 3]])
+        allowed = cfg.max_drift_fraction * path_length(between) + cfg.min_drift_m
+        moved = float((relative[:3, 3] - current[:3, 3]).norm())
+        if moved > allowed:
+            return f"loop would move the keyframe by {moved:.2f} > {allowed:.2f} (drift allowance along the path)"
+        xi = sim3_log(torch.linalg.inv(current) @ relative)
+        angle = math.degrees(float(xi[3:6].norm()))
+        if angle > cfg.max_drift_rotation_deg:
+            return f"loop rotation correction {angle:.1f} deg > {cfg.max_drift_rotation_deg} deg"
+        if abs(float(xi[6])) > cfg.max_drift_log_scale:
+            return f"loop scale correction exp({float(xi[6]):.2f}) beyond exp(+-{cfg.max_drift_log_scale})"
+        return ""
+
+    def detect(self, new: KeyframeView, history: Sequence[KeyframeView]) -> LoopDecision:
+        """Look for a loop between ``new`` and the keyframes of ``history`` (all earlier keyframes, any order)."""
+        cfg = self.detection
+        decision = LoopDecision()
+        if self._last_loop_kf is not None and new.id - self._last_loop_kf < cfg.min_keyframes_between_loops:
+            return decision
+        history = sorted(history, key=lambda kf: kf.id)
+        best: tuple[TwoViewResult, KeyframeView] | None = None
+        for old in self.candidates(new, history):
+            ab, mean_flow = self._correspondences(new, old)
+            if mean_flow >= cfg.max_mean_flow_px:
+                continue
+            decision.candidates.append(old.id)
+            ba, _ = self._correspondences(old, new)
+            # a = old, b = new: Z = S_old^{-1} S_new
+            result = estimate_relative_sim3(old.depth, new.depth, ba, ab, self.grid, self.intr, self.verification)
+            reason = result.reason if not result.accepted else self.drift_check(old, new, result.relative, history)
+            if reason:
+                decision.rejected[old.id] = reason
+                continue
+            if best is None or result.inlier_fraction > best[0].inlier_fraction:
+                best = (result, old)
+        if best is not None:
+            result, old = best
+            decision.accepted = LoopEdge(old.id, new.id, result.relative, result.information, result.inlier_fraction,
+                                         old.unit, new.unit)
+            self._last_loop_kf = new.id
+        return decision

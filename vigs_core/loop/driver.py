@@ -1,0 +1,154 @@
+"""Loop closure bound to the in-process pipeline: a :class:`~vigs_core.frontend.DenseOdometry` (or its
+visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1 and 3.3).
+
+:meth:`LoopClosureDriver.step`, called after every ``odometry.process(...)``:
+
+1. applies a finished PGBA: keyframe poses and disparities, frame poses (:func:`~vigs_core.loop.apply.
+   apply_to_odometry`), inertial velocities ``v' = c R_c v`` of the visual-inertial odometry, and one batch of
+   keyframe pose/scale updates for the mapper's anchored Gaussians (or the ``on_update`` callback);
+2. registers the keyframes created since the last call: their views (image, ``T_WC``, grid depth ``1/d``) and
+   an odometry edge to the previous keyframe whose information comes from the frontend's dense correspondences
+   of the pair (:func:`~vigs_core.loop.two_view.edge_information`; the configured standard deviations when the
+   frontend has none). Once the visual-inertial odometry is metric, a scale prior ``sigma_metric_log_scale`` is
+   added to each new odometry edge (the IMU observes scale, PGBA should not trade it away);
+3. starts PGBA on the current poses when a loop is pending.
+
+Detection, the odometry-edge information and PGBA run on the loop-closure worker thread; the tracking thread
+only builds keyframe views (cached for keyframes that left the frontend's window) and applies corrections.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+
+from vigs_core.frontend.dis_flow import DISFlowEstimator
+from vigs_core.geometry import se3_inverse
+from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrections_for
+from vigs_core.loop.closure import LoopClosure
+from vigs_core.loop.config import LoopConfig
+from vigs_core.loop.detection import KeyframeView
+from vigs_core.loop.pgba import PGBAResult
+from vigs_core.loop.two_view import TwoViewCorrespondences, edge_information
+
+F64 = torch.float64
+
+
+def keyframe_view(kf: Any, unit: float = 1.0) -> KeyframeView:
+    """The :class:`KeyframeView` of a frontend keyframe (``pose`` world->camera, ``disp`` grid inverse depth)
+    whose depth units are ``unit`` (see :class:`KeyframeView`)."""
+    disp = kf.disp.to(F64)
+    depth = torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
+    return KeyframeView(int(kf.id), kf.image, se3_inverse(kf.pose.to(F64)), depth, unit)
+
+
+def _correspondences(corr: Any) -> TwoViewCorrespondences:
+    return TwoViewCorrespondences(torch.as_tensor(corr.target, dtype=F64), torch.as_tensor(corr.weight, dtype=F64))
+
+
+class LoopClosureDriver:
+    """Loop closure beside a running odometry (module docstring).
+
+    Args:
+        config: loop-closure settings.
+        odometry: the frontend (``keyframes``, ``frames``, ``edges``, ``grid``, ``intr``, ``config.flow``).
+        mapper: optional :class:`~vigs_core.mapping.mapper.GaussianMapper` fed with camera poses ``T_WC``.
+        on_update: optional callback ``{kf_id: (T_WC (4, 4), depth scale)}`` called with every applied
+            correction (e.g. to publish keyframe pose updates, or to feed a mapper with another pose convention).
+    """
+
+    def __init__(self, config: LoopConfig, odometry: Any, mapper: Any = None,
+                 on_update: Callable[[dict[int, tuple[torch.Tensor, float]]], None] | None = None) -> None:
+        self.config = config
+        self.odometry = odometry
+        self.mapper = mapper
+        self.on_update = on_update
+        estimator = DISFlowEstimator(odometry.grid, odometry.config.flow)   # the worker's own instance
+        self.closure = LoopClosure(config, estimator, odometry.intr)
+        self.corrections_applied = 0
+        self._registered: list[int] = []
+        self._views: dict[int, KeyframeView] = {}   # cached views of keyframes that no longer change
+        self._window: set[int] = set()              # the frontend's window at the previous step
+
+    def step(self) -> PGBAResult | None:
+        """Apply a finished PGBA, register new keyframes, start PGBA if a loop waits; returns the applied result."""
+        result = self.closure.poll()
+        if result is not None:
+            self.apply(result)
+        new = [k for k in sorted(self.odometry.keyframes) if not self._registered or k > self._registered[-1]]
+        if new:
+            views = self._current_views()
+            for k in new:
+                history = [views[i] for i in self._registered]
+                prev = self._registered[-1] if self._registered else None
+                edges = {e: self.odometry.edges[e] for e in ((prev, k), (k, prev)) if e in self.odometry.edges}
+                info = (lambda a=views.get(prev), b=views[k], e=edges, m=self._metric(): self._information(a, b, e, m))
+                self.closure.add_keyframe(views[k], history, info)
+                self._registered.append(k)
+        if self.closure.pending:
+            self.closure.start_pgba({k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered})
+        return result
+
+    def finish(self) -> None:
+        """At the end of a run: wait for detection, run the last PGBA if loops are pending, apply everything."""
+        while True:
+            result = self.closure.wait()
+            if result is not None:
+                self.apply(result)
+            if not self.closure.pending:
+                break
+            self.closure.start_pgba({k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered})
+        self.closure.close()
+
+    def apply(self, result: PGBAResult) -> dict[int, tuple[torch.Tensor, float]]:
+        """Apply PGBA corrections to the odometry (and its inertial states), the mapper and ``on_update``."""
+        corrections = corrections_for(sorted(self.odometry.keyframes), result.corrections)
+        updates = apply_to_odometry(self.odometry, corrections)
+        self.closure.record_applied({k: c for k, (_, c) in updates.items()})
+        self._views.clear()
+        vio = getattr(self.odometry, "vio", None)
+        for k, C in corrections.items():
+            state = getattr(vio, "states", {}).get(k) if vio is not None else None
+            if state is not None:   # v' = c R_c v, and C[:3, :3] = c R_c
+                state.velocity = C[:3, :3].to(F64) @ state.velocity.to(F64)
+        if self.mapper is not None:
+            apply_to_mapper(self.mapper, updates)
+        if self.on_update is not None:
+            self.on_update(updates)
+        self.corrections_applied += 1
+        return updates
+
+    def _current_views(self) -> dict[int, KeyframeView]:
+        """Views of all keyframes: rebuilt for those in the frontend's window now or at the previous step (BA
+        still moves them), cached for the others (cleared when a correction is applied)."""
+        window = set(getattr(getattr(self.odometry, "graph", None), "keyframes", self.odometry.keyframes))
+        for k in window | self._window | (set(self.odometry.keyframes) - set(self._views)):
+            if k in self.odometry.keyframes:
+                self._views[k] = keyframe_view(self.odometry.keyframes[k], self.closure.unit(k))
+        self._window = window
+        return self._views
+
+    def _metric(self) -> bool:
+        vio = getattr(self.odometry, "vio", None)
+        return bool(vio is not None and getattr(vio, "metric", False))
+
+    def _information(self, a: KeyframeView | None, b: KeyframeView, edges: dict, metric: bool
+                     ) -> dict[int, torch.Tensor] | None:
+        """Information of the odometry edge (a, b) from the frontend's correspondences of the pair (worker
+        thread); None (configured standard deviations) without them."""
+        if a is None or (a.id, b.id) not in edges:
+            return None
+        Z = torch.linalg.inv(a.T_WC) @ b.T_WC
+        back = _correspondences(edges[(b.id, a.id)]) if (b.id, a.id) in edges else None
+        info = edge_information(Z, a.depth, b.depth, _correspondences(edges[(a.id, b.id)]), back, self.odometry.grid,
+                                self.odometry.intr, self.config.verification)
+        if metric:
+            info = info.clone()
+            info[6, 6] += self.config.graph.sigma_metric_log_scale ** -2
+        return {a.id: info}
+
+    def report(self) -> dict:
+        """Loop-closure numbers for report.json."""
+        out = self.closure.stats.as_dict()
+        out["corrections_applied"] = self.corrections_applied
+        return out
