@@ -1,0 +1,173 @@
+"""Staged initialisation on synthetic sequences with known scale and gravity, the map alignment, the
+no-staging joint path, and IMU keyframe initialisation with its covariance fallback."""
+import math
+
+import numpy as np
+import torch
+
+from vigs_core.geometry import se3_inverse, so3_exp
+from vigs_core.imu.preintegration import preintegrate
+from vigs_core.solver import BAConfig, bundle_adjust, reproject
+from vigs_core.vio.config import ABLATIONS, VioConfig
+from vigs_core.vio.estimator import VisualInertialEstimator
+from vigs_core.vio.initialization import Stage, StagedInitializer, WorldAlignment
+from vigs_core.vio.keyframe_init import predict_keyframe
+from vio_synthetic import INTR, NOISE, T_BC, T_CB, make_scenario, visual_problem
+
+torch.set_num_threads(1)
+F64 = dict(dtype=torch.float64)
+DOWN = torch.tensor([0.0, 0.0, -1.0], **F64)
+
+
+def _visual_frame(sc, factor, rot_noise_deg=0.0, seed=0):
+    """What vision-only BA hands over: camera poses in the first camera frame, positions times ``factor``."""
+    T = torch.linalg.inv(sc.T_wc[0]) @ sc.T_wc
+    if rot_noise_deg > 0:
+        g = torch.Generator().manual_seed(seed)
+        axis = torch.nn.functional.normalize(torch.randn(len(T), 3, generator=g, **F64), dim=-1)
+        T[:, :3, :3] = so3_exp(axis * math.radians(rot_noise_deg)) @ T[:, :3, :3]
+    T[:, :3, 3] *= factor
+    return se3_inverse(T)
+
+
+def test_staged_initialisation_recovers_scale_and_gravity():
+    for seed, factor in ((0, 0.37), (3, 2.5)):
+        sc = make_scenario(n=20, spacing_s=0.3, seed=seed, bias_gyro=(0.002, -0.02, 0.01),
+                           bias_acc=(0.05, -0.1, 0.08), imu_noise=True)
+        T_cw = _visual_frame(sc, factor, rot_noise_deg=0.2, seed=seed)
+        init = StagedInitializer(VioConfig(), sc.imu, NOISE, T_CB)
+        outcomes = [init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) for K in range(3, 21)]
+        assert all(o is None for o in outcomes[:-1]) and init.stage == Stage.VISUAL_INERTIAL
+        out = outcomes[-1]
+        assert abs(out.alignment.scale * factor - 1.0) < 0.02
+        # gravity: in the aligned world, camera 0 sees "down" where the true camera 0 does
+        R_c0w = out.alignment.pose(T_cw[:1])[0, :3, :3]
+        g_est = R_c0w @ DOWN
+        g_true = sc.T_wc[0, :3, :3].T @ DOWN
+        assert math.degrees(math.acos(float((g_est * g_true).sum().clamp(max=1.0)))) < 1.0
+        # metric distances between keyframes
+        p = se3_inverse(out.alignment.pose(T_cw))[:, :3, 3]
+        d_est = (p - p[0]).norm(dim=-1)[1:]
+        d_true = (sc.T_wc[:, :3, 3] - sc.T_wc[0, :3, 3]).norm(dim=-1)[1:]
+        assert ((d_est - d_true).abs() / d_true).max() < 0.03
+        # velocities in the aligned world: norms match, vertical component matches
+        assert (out.velocities.norm(dim=-1) - sc.velocities.norm(dim=-1)).abs().max() < 0.05
+        assert (out.velocities[:, 2] - sc.velocities[:, 2]).abs().max() < 0.05
+        assert (out.bias[:3] - torch.tensor(sc.bias_gyro, **F64)).abs().max() < 2e-3
+
+
+def test_alignment_keeps_reprojections_and_rotates_gravity():
+    sc = make_scenario(n=3)
+    T_cw = se3_inverse(sc.T_wc)
+    disps, coords, edges = visual_problem(T_cw)
+    al = WorldAlignment(2.5, so3_exp(torch.tensor([0.3, -0.2, 1.0], **F64)))
+    a = reproject(T_cw[edges.ii], T_cw[edges.jj], disps[edges.ii], coords, INTR).uv
+    T2 = al.pose(T_cw)
+    b = reproject(T2[edges.ii], T2[edges.jj], al.disparity(disps)[edges.ii], coords, INTR).uv
+    assert torch.allclose(a, b, atol=1e-9)
+    x = torch.randn(5, 3, **F64)
+    # a world point seen from a camera stays where it was, up to the scale
+    x_c = (T_cw[0, :3, :3] @ x.T).T + T_cw[0, :3, 3]
+    x_c2 = (T2[0, :3, :3] @ al.point(x).T).T + T2[0, :3, 3]
+    assert torch.allclose(x_c2, 2.5 * x_c, atol=1e-9)
+    rel = T_cw[1] @ se3_inverse(T_cw[0])
+    assert torch.allclose(al.relative(rel), T2[1] @ se3_inverse(T2[0]), atol=1e-9)
+
+
+def test_stage_machine_switches():
+    sc = make_scenario(n=12)
+    T_cw = se3_inverse(sc.T_wc)
+    off = StagedInitializer(VioConfig(**ABLATIONS["no_imu_fusion"]), sc.imu, NOISE, T_CB)
+    joint = StagedInitializer(VioConfig(**ABLATIONS["no_staged_init"]), sc.imu, NOISE, T_CB)
+    stages = []
+    for K in range(3, 13):
+        assert off.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) is None
+        joint.on_keyframe(sc.stamps_ns[:K], T_cw[:K])
+        stages.append(joint.stage)
+    assert off.stage == Stage.VISION_ONLY
+    assert stages.index(Stage.JOINT_UNALIGNED) == 10 - 3
+
+
+def test_joint_ba_without_staging_estimates_gravity_and_scale():
+    """No staging: VI-BA with gravity and log-scale states from an up-to-scale visual world."""
+    sc = make_scenario(n=11, spacing_s=0.3, seed=1)
+    factor = 0.5
+    T_vis = _visual_frame(sc, factor)
+    disps, coords, edges = visual_problem(T_vis, depth=(1.0, 2.0))
+    est = VisualInertialEstimator(VioConfig(staged_init=False, vision_only_keyframes=10, inertial_init_keyframes=11),
+                                  sc.imu, NOISE, T_BC)
+    ids = list(range(11))
+    for k in ids[:10]:
+        est.add_keyframe(k, int(sc.stamps_ns[k]))
+    assert est.on_keyframe(ids[:10], sc.stamps_ns[:10], T_vis[:10]) is None
+    assert est.stage == Stage.JOINT_UNALIGNED
+    est.add_keyframe(10, int(sc.stamps_ns[10]))
+    terms, state = est.terms(ids, T_vis)
+    assert terms.estimate_gravity and terms.estimate_scale
+    fixed = torch.zeros(11, dtype=torch.bool)
+    fixed[:2] = True   # as the frame graph does: two fixed poses hold the visual scale, log-scale is then unique
+    res = bundle_adjust(T_vis, disps, edges, coords, INTR, fixed, BAConfig(iterations=40, huber_delta=1e6),
+                        extra=terms, extra_state=state)
+    est.update(ids, res.extra_state)
+    assert abs(math.exp(est.log_scale) * factor - 1.0) < 0.02
+    g_true = sc.T_wc[0, :3, :3].T @ DOWN
+    g_est = est.R_wg @ DOWN
+    assert math.degrees(math.acos(float((g_est * g_true).sum().clamp(max=1.0)))) < 1.0
+    al = est.on_keyframe(ids, sc.stamps_ns, res.poses)
+    assert al is not None and est.metric
+    v = torch.stack([est.states[k].velocity for k in ids])
+    assert (v.norm(dim=-1) - sc.velocities.norm(dim=-1)).abs().max() < 0.02
+    assert (v[:, 2] - sc.velocities[:, 2]).abs().max() < 0.02
+    assert est.report()["scale_history"][-1]["scale"] == al.scale
+
+
+def test_keyframe_prediction_from_imu_and_fallback():
+    sc = make_scenario(n=3, spacing_s=0.25, bias_gyro=(0.01, 0.0, -0.01), bias_acc=(0.05, 0.0, 0.1))
+    b = torch.tensor(np.concatenate([sc.bias_gyro, sc.bias_acc]), **F64)
+    T_cw = se3_inverse(sc.T_wc)
+    g = torch.tensor([0.0, 0.0, -9.81], **F64)
+    pre = preintegrate(sc.imu, int(sc.stamps_ns[0]), int(sc.stamps_ns[1]), NOISE, b[:3], b[3:])
+    pred = predict_keyframe(T_cw[0], sc.velocities[0], b, pre, T_CB, g)
+    assert pred.from_imu and pred.cov_trace < 1e-4
+    assert (pred.T_cw - T_cw[1]).abs().max() < 1e-5
+    assert (pred.velocity - sc.velocities[1]).abs().max() < 1e-5
+    # a long interval makes the covariance trace exceed tau: fall back to the previous keyframe's pose
+    long = preintegrate(sc.imu, int(sc.stamps_ns[0]), int(sc.stamps_ns[0]) + 4_000_000_000, NOISE, b[:3], b[3:])
+    fb = predict_keyframe(T_cw[0], sc.velocities[0], b, long, T_CB, g)
+    assert not fb.from_imu and fb.cov_trace > 1e-4
+    assert torch.equal(fb.T_cw, T_cw[0])
+
+
+def test_estimator_predicts_only_once_metric():
+    sc = make_scenario(n=3)
+    T_cw = se3_inverse(sc.T_wc)
+    est = VisualInertialEstimator(VioConfig(), sc.imu, NOISE, T_BC)
+    est.add_keyframe(0, int(sc.stamps_ns[0]), sc.velocities[0])
+    assert est.predict(0, T_cw[0], int(sc.stamps_ns[1])) is None   # vision-only stage
+    R_cw = est.predict_rotation(0, T_cw[0], int(sc.stamps_ns[1]))   # the gyro alone needs no scale
+    assert (R_cw - T_cw[1, :3, :3]).abs().max() < 1e-6
+    assert est.terms([0], T_cw[:1]) is None
+    est.initializer.stage = Stage.VISUAL_INERTIAL                  # as after a successful alignment
+    pred = est.predict(0, T_cw[0], int(sc.stamps_ns[1]))
+    assert pred is not None and (pred.T_cw - T_cw[1]).abs().max() < 1e-5
+    assert est.predict_rotation(0, T_cw[0], int(sc.stamps_ns[1])) is None
+    off = VisualInertialEstimator(VioConfig(imu_keyframe_init=False), sc.imu, NOISE, T_BC)
+    off.add_keyframe(0, int(sc.stamps_ns[0]))
+    off.initializer.stage = Stage.VISUAL_INERTIAL
+    assert off.predict(0, T_cw[0], int(sc.stamps_ns[1])) is None
+
+
+
+def test_keyframes_outside_the_imu_stay_vision_only():
+    sc = make_scenario(n=22, spacing_s=0.3)
+    T_cw = se3_inverse(sc.T_wc)
+    short = sc.imu.slice(int(sc.stamps_ns[5]), int(sc.stamps_ns[-1]) + 1)   # IMU starts after keyframe 5
+    init = StagedInitializer(VioConfig(), short, NOISE, T_CB)
+    assert all(init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) is None for K in range(3, 23))
+    assert init.stage == Stage.VISION_ONLY
+    est = VisualInertialEstimator(VioConfig(), short, NOISE, T_BC)
+    for k in range(3):
+        est.add_keyframe(k, int(sc.stamps_ns[k]))
+    est.initializer.stage = Stage.VISUAL_INERTIAL
+    assert est.terms([0, 1, 2], T_cw[:3]) is None
+    assert est.predict(0, T_cw[0], int(sc.stamps_ns[1])) is None

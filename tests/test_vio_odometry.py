@@ -1,0 +1,135 @@
+"""End to end: ``vigs run`` (dense visual-inertial odometry) on a rendered synthetic room with a noisy synthetic
+IMU gives a metric, gravity-aligned trajectory with velocities; with fusion off it is the vision-only odometry."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from vigs_core.camera import CameraModel
+from vigs_core.eval import umeyama
+from vigs_core.frontend.odometry import DenseOdometry, OdometryConfig
+from vigs_core.geometry import matrix_to_quat
+from vigs_core.io import (CameraCalibration, write_camera_yaml, write_euroc_camera, write_euroc_groundtruth,
+                          write_euroc_imu, write_imu_yaml)
+from vigs_core.sim.imu_synthesis import imu_stamps, synthesize_imu
+from vigs_core.sim.trajectory import ProceduralConfig, ProceduralMotion
+from vigs_core.solver import Intrinsics
+from vigs_core.types import Trajectory
+from vigs_core.vio.config import VioConfig
+from vigs_core.vio.odometry import VisualInertialOdometry
+from vigs_cli.main import main as vigs_main
+from vio_synthetic import NOISE, T_BC, BoxRoom
+
+torch.set_num_threads(1)
+FX, CX, CY, W, H = 115.0, 93.5, 59.5, 188, 120
+BIAS_G, BIAS_A = np.array([0.003, -0.01, 0.02]), np.array([0.05, -0.08, 0.1])
+
+
+@pytest.fixture(scope="module")
+def room_sequence():
+    duration = 8.0
+    cfg = ProceduralConfig(duration_s=duration + 1, min_period_s=3.0, max_period_s=8.0, yaw_amplitude=0.5)
+    motion = ProceduralMotion(0, T_BC[:3, :3].numpy(), cfg, start_ns=10**9)
+    imu = synthesize_imu(motion, imu_stamps(motion.start_ns, motion.end_ns, 200.0), NOISE, seed=0,
+                         initial_bias_gyro=BIAS_G, initial_bias_acc=BIAS_A).imu
+    stamps = motion.start_ns + np.arange(int(duration * 20)) * 50_000_000
+    state = motion.evaluate(stamps)
+    T_wb = np.tile(np.eye(4), (len(stamps), 1, 1))
+    T_wb[:, :3, :3], T_wb[:, :3, 3] = state.rotation, state.position
+    room = BoxRoom()
+    images = [room.render(T, FX, FX, CX, CY, W, H) for T in T_wb @ T_BC.numpy()]
+    return stamps, images, imu, T_wb, state.velocity
+
+
+def _run(odo, stamps, images, count=None):
+    for k in range(len(stamps) if count is None else count):
+        odo.process(int(stamps[k]), images[k])
+    return odo
+
+
+def _nearest(stamps_ns, t_s):
+    """Index (N,) of the stamp nearest to each time t_s (N,) in seconds."""
+    return np.abs(stamps_ns[None, :] * 1e-9 - t_s[:, None]).argmin(1)
+
+
+def _write_asl(root, stamps, images, imu, T_wb):
+    cam_dir = root / "mav0" / "cam0"
+    for p, img in zip(write_euroc_camera(cam_dir, stamps), images):
+        cv2.imwrite(str(p), img)
+    camera = CameraModel(W, H, FX, FX, CX, CY)
+    write_camera_yaml(cam_dir / "sensor.yaml", CameraCalibration(camera, T_BC.numpy(), 20.0))
+    (root / "mav0" / "imu0").mkdir(parents=True)
+    write_euroc_imu(root / "mav0" / "imu0" / "data.csv", imu)
+    write_imu_yaml(root / "mav0" / "imu0" / "sensor.yaml", NOISE)
+    gt_dir = root / "mav0" / "state_groundtruth_estimate0"
+    gt_dir.mkdir(parents=True)
+    quat = matrix_to_quat(torch.from_numpy(T_wb[:, :3, :3])).numpy()
+    write_euroc_groundtruth(gt_dir / "data.csv", Trajectory(stamps, T_wb[:, :3, 3], quat))
+
+
+def test_vigs_run_gives_metric_gravity_aligned_trajectory(room_sequence, tmp_path):
+    """``vigs run`` on an ASL folder with IMU: visual-inertial, metric (SE(3) ATE without scale correction),
+    gravity-aligned, with velocities and the inertial report."""
+    stamps, images, imu, T_wb, vel = room_sequence
+    _write_asl(tmp_path / "seq", stamps, images, imu, T_wb)
+    params = tmp_path / "p.yaml"
+    params.write_text(f"frontend:\n  ros__parameters:\n    width: {W}\n    height: {H}\n    imu:\n"
+                      "      vision_only_keyframes: 5\n      inertial_init_keyframes: 10\n")
+    out = tmp_path / "out"
+    assert vigs_main(["run", str(tmp_path / "seq"), "--params", str(params), "--out", str(out),
+                      "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    rep = report["vio"]
+    assert rep["metric"] and rep["stage"] == "visual_inertial"
+    assert report["accuracy_se3"]["ate_rmse"] < 0.1
+    assert abs(report["accuracy"]["scale"] - 1.0) < 0.05
+    traj = np.loadtxt(out / "trajectory.txt")        # t x y z qx qy qz qw, body poses
+    idx = _nearest(stamps, traj[:, 0])
+    # gravity-aligned: the SE(3) alignment to the z-up ground truth is a rotation about z only
+    _, R, _ = umeyama(traj[:, 1:4], T_wb[idx, :3, 3], with_scale=False)
+    assert abs(R[2, 2] - 1.0) < 1e-3
+    # velocities (yaw-free checks: speed and vertical component), gyro bias
+    v = np.loadtxt(out / "velocity.txt")
+    ok = ~np.isnan(v[:, 1])
+    assert ok.sum() > len(stamps) // 3
+    gv = vel[_nearest(stamps, v[ok, 0])]
+    assert np.abs(np.linalg.norm(v[ok, 1:], axis=1) - np.linalg.norm(gv, axis=1)).mean() < 0.05
+    assert np.abs(v[ok, 3] - gv[:, 2]).mean() < 0.05
+    assert np.abs(np.array(rep["bias_gyro"]) - BIAS_G).max() < 3e-3
+    assert rep["imu_predictions"] > 0
+    assert len(rep["scale_history"]) == 1 and rep["scale_history"][0]["stage"] == "aligned"
+    assert len(rep["keyframe_states"]["velocity"]) == report["keyframes"]
+
+
+def test_vio_without_fusion_is_the_vision_only_odometry(room_sequence):
+    stamps, images, imu, _, _ = room_sequence
+    intr = Intrinsics(FX, FX, CX, CY)
+    a = _run(DenseOdometry(intr, W, H, OdometryConfig()), stamps, images, count=50)
+    b = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig(enabled=False)),
+             stamps, images, count=50)
+    ta, Pa = a.final_frame_poses()
+    tb, Pb = b.final_frame_poses()
+    assert len(ta) > 20 and np.array_equal(ta, tb)
+    assert torch.equal(Pa, Pb)
+    assert b.report()["stage"] == "vision_only" and not b.report()["metric"]
+
+
+def test_still_start_is_held_at_the_first_pose(room_sequence):
+    """A camera standing still cannot initialise a monocular front end; the VI odometry holds it at the first
+    frame's pose (no drift, no keyframes) instead of giving no pose."""
+    stamps, images, imu, _, _ = room_sequence
+    rng = np.random.default_rng(0)
+    still = [np.clip(images[0] + rng.normal(0, 2, images[0].shape), 0, 255).astype(np.uint8) for _ in range(30)]
+    intr = Intrinsics(FX, FX, CX, CY)
+    odo = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig()), stamps, still,
+               count=30)
+    t, P = odo.final_frame_poses()
+    assert np.array_equal(t, stamps[:30]) and len(odo.keyframes) == 0
+    assert torch.equal(P, torch.eye(4, dtype=torch.float64).expand(30, 4, 4))
+    assert odo.report()["held_still_frames"] == 30
+    # with fusion off the behaviour is the front end's: no pose before initialisation
+    off = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig(enabled=False)),
+               stamps, still, count=30)
+    assert len(off.final_frame_poses()[0]) == 0

@@ -1,0 +1,101 @@
+"""Settings of the visual-inertial back end (VIGS-SLAM Sec. 3.2-3.3), including the ablation switches of
+VIGS-SLAM Table 6.
+
+The ablations map onto the switches as follows:
+
+* "w/o IMU fusion": ``enabled=False`` -- vision-only BA throughout; no initialisation, no metric scale.
+* "w/o bias estimation": ``estimate_bias=False, bias_from_inertial_init=False`` -- biases are not states and
+  stay zero (with ``bias_from_inertial_init`` they would stay at the inertial-only stage's estimate).
+* "w/o staged initialisation": ``staged_init=False`` -- no vision-only warm-up and no inertial-only stage: as
+  soon as ``vision_only_keyframes`` keyframes exist, joint VI-BA starts with the gravity direction and the
+  log-scale as additional free states, initialised from the mean accelerometer reading (gravity) and scale 1.
+* "w/o IMU keyframe initialisation": ``imu_keyframe_init=False`` -- new frames/keyframes are initialised by the
+  visual front end's own motion model instead of IMU preintegration.
+* "single global bias": ``per_keyframe_bias=False`` -- one bias shared by the whole window instead of one per
+  keyframe (no bias-smoothness residuals).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass
+class VioConfig:
+    """Visual-inertial settings (defaults: the paper's values for EuRoC).
+
+    Args:
+        enabled: fuse the IMU at all (False = the "w/o IMU fusion" ablation, and the vision-only pipeline).
+        estimate_bias: biases are optimised states (False = "w/o bias estimation").
+        per_keyframe_bias: one bias per keyframe with smoothness residuals (False = one global bias).
+        staged_init: three-stage initialisation (False = "w/o staged initialisation", see the module docstring).
+        imu_keyframe_init: initialise new frames/keyframes from IMU preintegration (False = the front end's
+            motion model, "w/o IMU keyframe initialisation").
+        vision_only_keyframes: keyframes of the vision-only stage before inertial data are used (paper: 10).
+        inertial_init_keyframes: keyframe count at which the inertial-only stage runs (paper: 20).
+        keyframe_init_max_cov_trace: tau of the IMU keyframe initialisation: when the trace of the
+            preintegration covariance of (rotation, velocity, position) exceeds it, the new pose falls back to
+            the previous keyframe's pose (paper: 1e-4; units mixed rad^2, (m/s)^2, m^2 as in the paper).
+        gravity: gravity magnitude, m/s^2.
+        inertial_weight: multiplies the inertial information matrices relative to the visual terms (whose
+            residuals are in pixels with unit weight per confidence).
+        bias_prior_gyro_std: zero-mean prior on each gyroscope bias state, rad/s (keeps unobservable directions
+            bounded).
+        bias_prior_acc_std: zero-mean prior on each accelerometer bias state, m/s^2.
+        bias_from_inertial_init: start the biases from the inertial-only estimate (else zero).
+        relinearize_bias_threshold: re-preintegrate an interval when its bias estimate moved further than this
+            from the linearisation bias (Euclidean norm of the 6-vector), rad/s and m/s^2.
+        max_init_log_scale_std: the inertial-only stage is accepted when the standard deviation of its log-scale
+            is below this; otherwise it is retried at the next keyframe.
+        max_init_gravity_std_deg: same for the gravity direction, degrees.
+        scheme: preintegration scheme (see :mod:`vigs_core.imu.preintegration`).
+        metric_fixed_keyframes: once the map is metric, this many oldest window keyframes are held fixed in BA
+            (1: rotation and position gauge only, the IMU observes the scale; 0 keeps the frame graph's count).
+        anchor_velocity_std: once metric, the velocities of the window's fixed keyframes are held at their last
+            estimate with this standard deviation, m/s (the inertial counterpart of fixing their poses; 0 = off).
+        anchor_bias_gyro_std: same for their gyroscope biases, rad/s.
+        anchor_bias_acc_std: same for their accelerometer biases, m/s^2.
+        still_max_flow_px: before the front end initialises, a frame whose mean flow from the first frame is
+            below this (input pixels) is held at the first frame's pose (see :mod:`vigs_core.vio.odometry`).
+    """
+
+    enabled: bool = True
+    estimate_bias: bool = True
+    per_keyframe_bias: bool = True
+    staged_init: bool = True
+    imu_keyframe_init: bool = True
+    vision_only_keyframes: int = 10
+    inertial_init_keyframes: int = 20
+    keyframe_init_max_cov_trace: float = 1e-4
+    gravity: float = 9.81
+    inertial_weight: float = 1.0
+    bias_prior_gyro_std: float = 0.1
+    bias_prior_acc_std: float = 0.5
+    bias_from_inertial_init: bool = True
+    relinearize_bias_threshold: float = 0.01
+    max_init_log_scale_std: float = 0.02
+    max_init_gravity_std_deg: float = 2.0
+    scheme: str = "closed_form"
+    metric_fixed_keyframes: int = 1
+    anchor_velocity_std: float = 0.01
+    anchor_bias_gyro_std: float = 1e-3
+    anchor_bias_acc_std: float = 1e-2
+    still_max_flow_px: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.vision_only_keyframes < 3 or self.inertial_init_keyframes < self.vision_only_keyframes:
+            raise ValueError(f"VioConfig: vision_only_keyframes {self.vision_only_keyframes}, inertial_init_keyframes "
+                             f"{self.inertial_init_keyframes}; expected 3 <= vision_only <= inertial_init")
+        if self.keyframe_init_max_cov_trace <= 0 or self.inertial_weight <= 0:
+            raise ValueError("VioConfig: keyframe_init_max_cov_trace and inertial_weight must be positive")
+
+
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "full": {},
+    "no_bias_estimation": {"estimate_bias": False, "bias_from_inertial_init": False},
+    "no_imu_fusion": {"enabled": False},
+    "no_staged_init": {"staged_init": False},
+    "no_imu_keyframe_init": {"imu_keyframe_init": False},
+    "single_global_bias": {"per_keyframe_bias": False},
+}
+"""The rows of VIGS-SLAM Table 6 as overrides of :class:`VioConfig`."""

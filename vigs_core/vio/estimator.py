@@ -1,0 +1,257 @@
+"""Visual-inertial state of the keyframes and the glue between the IMU, the stage machine and dense BA.
+
+:class:`VisualInertialEstimator` keeps, per keyframe, the body velocity and the IMU bias (or one global bias),
+caches the preintegration between consecutive keyframes (re-integrated when the bias estimate moved more than
+``relinearize_bias_threshold`` from the linearisation bias, since the first-order correction of Forster Eq. 44
+degrades with the bias change), builds the :class:`~vigs_core.vio.inertial_terms.InertialTerms` of a BA window,
+predicts new frames from the IMU (:mod:`vigs_core.vio.keyframe_init`) and runs the stage machine
+(:mod:`vigs_core.vio.initialization`). A front end drives it with these calls::
+
+    add_keyframe(id, t_ns)                      # a new keyframe exists
+    predict(ref_id, T_cw_ref, t_ns)             # IMU prior for a frame (None before initialisation)
+    predict_rotation(ref_id, T_cw_ref, t_ns)    # gyro-only rotation prior before initialisation
+    terms(ids, poses) -> (terms, state) | None  # inertial terms of a BA window (pass to bundle_adjust)
+    update(ids, state)                          # store the BA's velocities and biases
+    on_keyframe(ids, stamps, poses) -> WorldAlignment | None   # after the keyframe's BA; apply it to the map
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from vigs_core.imu.preintegration import Preintegrated, preintegrate, stack_preintegrated
+from vigs_core.types import ImuNoise, ImuSamples
+from vigs_core.vio.config import VioConfig
+from vigs_core.vio.inertial_terms import AnchorPrior, InertialState, InertialTerms
+from vigs_core.vio.initialization import Stage, StagedInitializer, WorldAlignment, gravity_from_accelerometer
+from vigs_core.vio.keyframe_init import KeyframePrediction, predict_keyframe
+
+F64 = torch.float64
+
+
+@dataclass
+class KeyframeInertial:
+    """Inertial state of one keyframe: stamp (ns), body velocity (3,) m/s (world), bias (6,) (b_g, b_a)."""
+
+    t_ns: int
+    velocity: torch.Tensor
+    bias: torch.Tensor
+
+
+class VisualInertialEstimator:
+    """Per-keyframe velocities/biases, inertial BA terms, IMU prediction and staged initialisation.
+
+    Args:
+        config: VIO settings.
+        imu: IMU samples of the whole run (body frame).
+        noise: IMU noise densities.
+        T_bc: (4, 4) camera pose in the body frame (EuRoC ``T_BS`` of cam0); ``T_cb = T_bc^-1``.
+    """
+
+    def __init__(self, config: VioConfig, imu: ImuSamples, noise: ImuNoise, T_bc: np.ndarray | torch.Tensor) -> None:
+        self.config = config
+        self.imu, self.noise = imu, noise
+        self.T_cb = torch.linalg.inv(torch.as_tensor(np.asarray(T_bc), dtype=F64))
+        self.initializer = StagedInitializer(config, imu, noise, self.T_cb)
+        self.states: dict[int, KeyframeInertial] = {}
+        self.global_bias = torch.zeros(6, dtype=F64)
+        self.R_wg = torch.eye(3, dtype=F64)
+        self.log_scale = 0.0
+        self.scale_history: list[dict] = []
+        self.alignment: WorldAlignment | None = None
+        self.imu_predictions = 0
+        self.fallbacks = 0
+        self._pre: dict[tuple[int, int], Preintegrated] = {}
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def stage(self) -> Stage:
+        return self.initializer.stage
+
+    @property
+    def metric(self) -> bool:
+        """True once the map is metric and gravity-aligned."""
+        return self.stage == Stage.VISUAL_INERTIAL
+
+    def gravity_world(self) -> torch.Tensor:
+        """(3,) gravity in the current world frame (m/s^2)."""
+        return self.R_wg @ torch.tensor([0.0, 0.0, -self.config.gravity], dtype=F64)
+
+    def imu_covers(self, t0_ns: int, t1_ns: int) -> bool:
+        """True when the IMU samples bracket ``[t0_ns, t1_ns]`` (keyframes outside stay vision-only)."""
+        return len(self.imu) >= 2 and int(self.imu.t_ns[0]) <= t0_ns and int(self.imu.t_ns[-1]) >= t1_ns
+
+    def bias_of(self, kf_id: int) -> torch.Tensor:
+        """(6,) bias of a keyframe (the global one without per-keyframe biases)."""
+        return self.states[kf_id].bias if self.config.per_keyframe_bias else self.global_bias
+
+    # ------------------------------------------------------------------ keyframes
+    def add_keyframe(self, kf_id: int, t_ns: int, velocity: torch.Tensor | None = None) -> None:
+        """Register a keyframe (ids increase with time); velocity and bias start from the previous keyframe."""
+        prev = self.states[max(self.states)] if self.states else None
+        if prev is not None and int(t_ns) <= prev.t_ns:
+            raise ValueError(f"keyframe {kf_id} at {t_ns} ns is not after the previous keyframe ({prev.t_ns} ns)")
+        v = velocity if velocity is not None else (prev.velocity.clone() if prev else torch.zeros(3, dtype=F64))
+        b = prev.bias.clone() if prev else self.global_bias.clone()
+        self.states[kf_id] = KeyframeInertial(int(t_ns), v.to(F64), b)
+
+    def preintegration(self, i: int, j: int) -> Preintegrated:
+        """Preintegration from keyframe ``i`` to ``j`` at ``i``'s bias (cached; re-integrated when stale)."""
+        b = self.bias_of(i)
+        pre = self._pre.get((i, j))
+        if pre is not None:
+            lin = torch.cat((pre.bias_gyro, pre.bias_acc))
+            if float((b - lin).norm()) <= self.config.relinearize_bias_threshold:
+                return pre
+        pre = preintegrate(self.imu, self.states[i].t_ns, self.states[j].t_ns, self.noise, b[:3], b[3:],
+                           self.config.scheme)
+        self._pre[(i, j)] = pre
+        return pre
+
+    def predict(self, ref_id: int, T_cw_ref: torch.Tensor, t_ns: int) -> KeyframePrediction | None:
+        """IMU prediction of the pose at ``t_ns`` from keyframe ``ref_id`` (VIGS-SLAM keyframe initialisation,
+        with the tau fallback); None before the map is metric or when disabled."""
+        c = self.config
+        if not (c.enabled and c.imu_keyframe_init and self.metric):
+            return None
+        ref = self.states[ref_id]
+        if int(t_ns) <= ref.t_ns or not self.imu_covers(ref.t_ns, int(t_ns)):
+            return None
+        b = self.bias_of(ref_id)
+        pre = preintegrate(self.imu, ref.t_ns, int(t_ns), self.noise, b[:3], b[3:], c.scheme)
+        pred = predict_keyframe(T_cw_ref, ref.velocity, b, pre, self.T_cb, self.gravity_world(),
+                                c.keyframe_init_max_cov_trace)
+        if pred.from_imu:
+            self.imu_predictions += 1
+        else:
+            self.fallbacks += 1
+        return pred
+
+    def predict_rotation(self, ref_id: int, T_cw_ref: torch.Tensor, t_ns: int) -> torch.Tensor | None:
+        """Before the map is metric: the camera rotation ``R_cw`` (3, 3) at ``t_ns`` from the gyro alone,
+        ``R_wb = R_wb,ref dR`` (rotation needs neither scale nor gravity); None once metric (:meth:`predict`
+        gives the full state then) or when disabled."""
+        c = self.config
+        if not (c.enabled and c.imu_keyframe_init) or self.metric:
+            return None
+        ref = self.states[ref_id]
+        if int(t_ns) <= ref.t_ns or not self.imu_covers(ref.t_ns, int(t_ns)):
+            return None
+        b = self.bias_of(ref_id)
+        pre = preintegrate(self.imu, ref.t_ns, int(t_ns), self.noise, b[:3], b[3:], c.scheme)
+        R_cb = self.T_cb[:3, :3]
+        R_wb = T_cw_ref[:3, :3].to(F64).T @ R_cb
+        return (R_wb @ pre.delta_R @ R_cb.T).T
+
+    # ------------------------------------------------------------------ BA
+    def terms(self, ids: list[int], poses: torch.Tensor,
+              anchored: set[int] | None = None) -> tuple[InertialTerms, InertialState] | None:
+        """Inertial terms and state of a BA window of consecutive keyframes ``ids`` (oldest first), or None
+        when no inertial terms apply (vision-only stage, fusion off, fewer than two keyframes, no IMU data over
+        the window). Once metric, the keyframes in ``anchored`` (the window's fixed ones) keep their velocity and
+        bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
+        c = self.config
+        if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
+            return None
+        if not self.imu_covers(self.states[ids[0]].t_ns, self.states[ids[-1]].t_ns):
+            return None
+        joint = self.stage == Stage.JOINT_UNALIGNED
+        pre = stack_preintegrated([self.preintegration(i, j) for i, j in zip(ids[:-1], ids[1:])])
+        prior = torch.tensor([c.bias_prior_gyro_std] * 3 + [c.bias_prior_acc_std] * 3, dtype=F64)
+        vel = torch.stack([self.states[k].velocity for k in ids])
+        biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
+        anchor = None
+        if self.metric and anchored and c.anchor_velocity_std > 0:
+            mask = torch.tensor([k in anchored for k in ids])
+            all_biases = torch.stack([self.bias_of(k) for k in ids])
+            bias_std = torch.tensor([c.anchor_bias_gyro_std] * 3 + [c.anchor_bias_acc_std] * 3, dtype=F64)
+            anchor = AnchorPrior(mask, vel.clone(), all_biases, c.anchor_velocity_std, bias_std)
+        terms = InertialTerms(pre, self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias,
+                              estimate_gravity=joint, estimate_scale=joint, gravity=c.gravity,
+                              weight=c.inertial_weight, bias_prior_std=prior, anchor=anchor)
+        state = InertialState(vel, biases.clone(), self.R_wg.clone(), torch.tensor(self.log_scale, dtype=F64))
+        return terms, state
+
+    def update(self, ids: list[int], state: InertialState) -> None:
+        """Store the velocities, biases (and joint gravity/scale) a BA returned for window ``ids``."""
+        for n, k in enumerate(ids):
+            self.states[k].velocity = state.velocities[n].clone()
+            if self.config.per_keyframe_bias:
+                self.states[k].bias = state.biases[n].clone()
+        if not self.config.per_keyframe_bias:
+            self.global_bias = state.biases[0].clone()
+            for k in ids:
+                self.states[k].bias = self.global_bias.clone()
+        if self.stage == Stage.JOINT_UNALIGNED:
+            self.R_wg, self.log_scale = state.R_wg.clone(), float(state.log_scale)
+
+    # ------------------------------------------------------------------ stages
+    def on_keyframe(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
+        """Advance the initialisation after a keyframe's BA, with ALL keyframes so far (ids (K,), stamps (K,),
+        world->camera poses (K, 4, 4)). Returns the alignment the caller must apply to poses and disparities
+        (velocities here are already updated), or None."""
+        before = self.stage
+        outcome = self.initializer.on_keyframe(np.asarray(stamps_ns), poses)
+        t_ns = int(stamps_ns[-1])
+        if outcome is not None:
+            bias = outcome.bias if self.config.bias_from_inertial_init else None
+            for n, k in enumerate(ids):
+                self.states[k].velocity = outcome.velocities[n].clone()
+                if bias is not None:
+                    self.states[k].bias = bias.clone()
+            if bias is not None:
+                self.global_bias = bias.clone()
+            self._finish(outcome.alignment, t_ns, len(ids))
+            return outcome.alignment
+        if before == Stage.VISION_ONLY and self.stage == Stage.JOINT_UNALIGNED:
+            self._start_joint(ids, stamps_ns, poses)
+        if self.stage == Stage.JOINT_UNALIGNED:
+            self.scale_history.append({"t_ns": t_ns, "keyframes": len(ids), "stage": self.stage.value,
+                                       "scale": float(np.exp(self.log_scale))})
+            alignment = self.initializer.finish_joint(len(ids), self.R_wg, self.log_scale)
+            if alignment is not None:
+                for k in ids:
+                    self.states[k].velocity = alignment.velocity(self.states[k].velocity)
+                self._finish(alignment, t_ns, len(ids))
+                return alignment
+        return None
+
+    def _start_joint(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> None:
+        """Without staging: gravity from the accelerometer, scale 1, velocities by finite differences."""
+        T_wc = torch.linalg.inv(poses.to(F64))
+        t0 = int(stamps_ns[0])
+        t1 = max(int(stamps_ns[1]), t0 + 500_000_000) if len(stamps_ns) > 1 else t0 + 500_000_000
+        self.R_wg = gravity_from_accelerometer(self.imu, t0, t1, T_wc[0], self.T_cb)
+        self.log_scale = 0.0
+        p = T_wc[:, :3, 3]
+        dt = torch.as_tensor(np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9, dtype=F64)
+        v = torch.zeros_like(p)
+        v[1:] = (p[1:] - p[:-1]) / dt[:, None]
+        v[0] = v[1] if len(ids) > 1 else v[0]
+        for n, k in enumerate(ids):
+            self.states[k].velocity = v[n]
+
+    def _finish(self, alignment: WorldAlignment, t_ns: int, keyframes: int) -> None:
+        self.alignment = alignment
+        self.R_wg = torch.eye(3, dtype=F64)
+        self.log_scale = 0.0
+        self._pre.clear()
+        self.scale_history.append({"t_ns": t_ns, "keyframes": keyframes, "stage": "aligned",
+                                   "scale": alignment.scale})
+
+    def report(self) -> dict:
+        """JSON-ready summary: stage, scale history, init attempts, latest biases, IMU prediction counts."""
+        last = self.states[max(self.states)] if self.states else None
+        return {
+            "stage": self.stage.value,
+            "metric": self.metric,
+            "scale": None if self.alignment is None else self.alignment.scale,
+            "scale_history": self.scale_history,
+            "init_attempts": self.initializer.attempts,
+            "bias_gyro": None if last is None else [float(x) for x in self.bias_of(max(self.states))[:3]],
+            "bias_acc": None if last is None else [float(x) for x in self.bias_of(max(self.states))[3:]],
+            "imu_predictions": self.imu_predictions,
+            "imu_prediction_fallbacks": self.fallbacks,
+        }

@@ -1,0 +1,197 @@
+"""Three-stage visual-inertial initialisation (VIGS-SLAM Sec. 3.2) and the map alignment it produces.
+
+Stages, by the number ``K`` of keyframes (both thresholds are :class:`~vigs_core.vio.config.VioConfig`
+parameters, paper values 10 and 20):
+
+1. ``VISION_ONLY`` while ``K < inertial_init_keyframes``: dense BA without inertial terms gives up-to-scale
+   poses in the first camera's frame (the first ``vision_only_keyframes`` form the visual initialisation).
+2. At ``K = inertial_init_keyframes`` the inertial-only stage
+   (:func:`vigs_core.imu.inertial_init.inertial_only_init`): with the poses fixed, solve the gravity direction
+   ``R_wg``, the per-keyframe velocities, the bias and the log-scale ``sigma``. An untrustworthy solution
+   (standard deviations above the configured limits) is retried at the next keyframe.
+3. ``VISUAL_INERTIAL``: the map is rescaled and gravity-aligned (:class:`WorldAlignment`) and every later BA is
+   the joint VI-BA with metric scale and gravity fixed along ``-z``.
+
+Without staging (the Table 6 ablation) ``JOINT_UNALIGNED`` replaces stages 1-2 from ``vision_only_keyframes``
+on: joint VI-BA with gravity direction and log-scale as free states, started from the mean accelerometer
+reading (:func:`gravity_from_accelerometer`) and scale 1, aligned with those estimates at
+``inertial_init_keyframes``.
+
+Alignment: with ``s = exp(sigma)`` and ``R = R_wg^T`` the new world is ``x' = s R x`` (gravity along ``-z``,
+metric). Camera poses ``T_cw = [R_cw | t_cw]`` become ``[R_cw R^T | s t_cw]``, disparities ``d / s``,
+body velocities (already metric) ``R v``. Yaw stays that of the first camera (unobservable).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import torch
+
+from vigs_core.geometry import se3_inverse
+from vigs_core.imu.inertial_init import InertialInit, InertialInitConfig, inertial_only_init
+from vigs_core.imu.residual import gravity_rotation
+from vigs_core.types import ImuNoise, ImuSamples
+from vigs_core.vio.config import VioConfig
+
+
+class Stage(str, Enum):
+    """Initialisation stage of the visual-inertial estimator."""
+
+    VISION_ONLY = "vision_only"
+    JOINT_UNALIGNED = "joint_unaligned"
+    VISUAL_INERTIAL = "visual_inertial"
+
+
+@dataclass
+class WorldAlignment:
+    """Similarity ``x' = scale R x`` from the up-to-scale visual world to the metric gravity-aligned one.
+
+    Attributes:
+        scale: metric metres per map unit; R: (3, 3) rotation.
+    """
+
+    scale: float
+    R: torch.Tensor
+
+    def pose(self, T_cw: torch.Tensor) -> torch.Tensor:
+        """World->camera poses (..., 4, 4) in the new world: ``[R_cw R^T | s t_cw]``."""
+        out = T_cw.clone()
+        out[..., :3, :3] = T_cw[..., :3, :3] @ self.R.to(T_cw).T
+        out[..., :3, 3] = self.scale * T_cw[..., :3, 3]
+        return out
+
+    def relative(self, T_ab: torch.Tensor) -> torch.Tensor:
+        """A camera-to-camera transform (..., 4, 4): translation scaled, rotation unchanged."""
+        out = T_ab.clone()
+        out[..., :3, 3] = self.scale * T_ab[..., :3, 3]
+        return out
+
+    def disparity(self, disp: torch.Tensor) -> torch.Tensor:
+        """Inverse depths (any shape) in metric units: ``d / s``."""
+        return disp / self.scale
+
+    def velocity(self, v: torch.Tensor) -> torch.Tensor:
+        """Metric world velocities (..., 3) rotated into the new world."""
+        return v @ self.R.to(v).T
+
+    def point(self, x: torch.Tensor) -> torch.Tensor:
+        """World points (..., 3): ``s R x``."""
+        return self.scale * (x @ self.R.to(x).T)
+
+
+def alignment_from_gravity(R_wg: torch.Tensor, log_scale: float) -> WorldAlignment:
+    """Alignment that maps gravity ``R_wg (0, 0, -g)`` to ``(0, 0, -g)`` and scales by ``exp(log_scale)``."""
+    return WorldAlignment(float(np.exp(log_scale)), R_wg.to(torch.float64).T.clone())
+
+
+def gravity_from_accelerometer(imu: ImuSamples, t0_ns: int, t1_ns: int, T_wc0: torch.Tensor,
+                               T_cb: torch.Tensor) -> torch.Tensor:
+    """``R_wg`` (3, 3) from the mean specific force over ``[t0, t1)`` rotated by the first keyframe's body
+    orientation ``R_wb = R_wc0 R_cb`` (gravity ``= -R_wb mean(a)``; exact when the body does not accelerate)."""
+    seg = imu.slice(t0_ns, t1_ns)
+    if len(seg) == 0:
+        raise ValueError(f"no IMU samples in [{t0_ns}, {t1_ns}) ns to estimate gravity from")
+    a = torch.as_tensor(seg.acc.mean(0), dtype=torch.float64)
+    R_wb = T_wc0[:3, :3].to(torch.float64) @ T_cb[:3, :3].to(torch.float64)
+    return gravity_rotation(-(R_wb @ a))
+
+
+@dataclass
+class InitOutcome:
+    """Result of the inertial-only stage, ready to apply.
+
+    Attributes:
+        alignment: the map transform.
+        velocities: (K, 3) keyframe velocities in the NEW world (m/s).
+        bias: (6,) ``(b_g, b_a)``.
+        inertial: the raw inertial-only solution (trust figures), None when aligned from joint-BA states.
+    """
+
+    alignment: WorldAlignment
+    velocities: torch.Tensor
+    bias: torch.Tensor
+    inertial: InertialInit | None
+
+
+class StagedInitializer:
+    """The stage machine (module docstring): call :meth:`on_keyframe` after each keyframe's BA.
+
+    Args:
+        config: VIO settings (counts, switches, trust limits).
+        imu: all IMU samples of the run (or at least those covering the keyframes).
+        noise: IMU noise densities.
+        T_cb: (4, 4) body->camera extrinsic.
+    """
+
+    def __init__(self, config: VioConfig, imu: ImuSamples, noise: ImuNoise, T_cb: torch.Tensor) -> None:
+        self.config = config
+        self.imu, self.noise = imu, noise
+        self.T_cb = T_cb.to(torch.float64)
+        self.stage = Stage.VISION_ONLY
+        self.joint_start = 0      # keyframe count at which joint VI-BA without staging began
+        self.attempts: list[dict] = []
+
+    def _covers(self, stamps_ns: np.ndarray) -> bool:
+        """True when the IMU samples bracket all stamps (ns)."""
+        imu = self.imu
+        return len(imu) >= 2 and int(imu.t_ns[0]) <= int(stamps_ns[0]) and int(imu.t_ns[-1]) >= int(stamps_ns[-1])
+
+    def inertial_config(self) -> InertialInitConfig:
+        c = self.config
+        return InertialInitConfig(gravity=c.gravity, max_log_scale_std=c.max_init_log_scale_std,
+                                  max_gravity_std_deg=c.max_init_gravity_std_deg, scheme=c.scheme)
+
+    def on_keyframe(self, stamps_ns: np.ndarray, T_cw: torch.Tensor) -> InitOutcome | None:
+        """Advance the stage machine with all keyframes so far (stamps (K,), world->camera poses (K, 4, 4)).
+
+        Returns an :class:`InitOutcome` when the inertial-only stage succeeded at this keyframe (the caller
+        applies the alignment and switches to VI-BA), else None. Without staging it only switches to
+        ``JOINT_UNALIGNED``; the caller aligns with its joint estimates (:meth:`finish_joint`).
+        """
+        c = self.config
+        K = len(stamps_ns)
+        if not c.enabled or self.stage == Stage.VISUAL_INERTIAL:
+            return None
+        if not c.staged_init:
+            if self.stage == Stage.VISION_ONLY and K >= c.vision_only_keyframes and self._covers(stamps_ns):
+                self.stage = Stage.JOINT_UNALIGNED
+                self.joint_start = K
+            return None
+        if K < c.inertial_init_keyframes:
+            return None
+        # the most recent keyframes, at most twice the stage's count (older poses drifted and are frozen)
+        keep = slice(max(0, K - 2 * c.inertial_init_keyframes), K)
+        stamps, poses = np.asarray(stamps_ns[keep], dtype=np.int64), T_cw[keep].to(torch.float64)
+        if not self._covers(stamps):
+            return None   # the IMU does not cover these keyframes: stay vision-only
+        try:
+            result = inertial_only_init(se3_inverse(poses), stamps, self.imu, self.noise, self.T_cb,
+                                        self.inertial_config())
+        except torch.linalg.LinAlgError as err:   # degenerate motion (e.g. no acceleration): retry later
+            self.attempts.append({"keyframes": K, "error": str(err).splitlines()[0]})
+            return None
+        self.attempts.append({"keyframes": K, "scale": result.scale, "log_scale_std": result.log_scale_std,
+                              "gravity_std_deg": result.gravity_std_deg, "trustworthy": result.trustworthy})
+        if not result.trustworthy:
+            return None
+        alignment = alignment_from_gravity(result.R_wg, result.log_scale)
+        vel = torch.zeros(K, 3, dtype=torch.float64)
+        vel[keep] = alignment.velocity(result.velocities)
+        if keep.start > 0:   # keyframes outside the solved window: finite differences of the aligned positions
+            p = se3_inverse(alignment.pose(T_cw[:keep.start + 1].to(torch.float64)))[:, :3, 3]
+            dt = np.diff(np.asarray(stamps_ns[:keep.start + 1], dtype=np.int64)) * 1e-9
+            vel[:keep.start] = (p[1:] - p[:-1]) / torch.as_tensor(dt)[:, None]
+        bias = torch.cat((result.bias_gyro, result.bias_acc))
+        self.stage = Stage.VISUAL_INERTIAL
+        return InitOutcome(alignment, vel, bias, result)
+
+    def finish_joint(self, K: int, R_wg: torch.Tensor, log_scale: float) -> WorldAlignment | None:
+        """Without staging: at ``inertial_init_keyframes`` keyframes (and after at least one joint BA), the
+        alignment from the joint estimates ``R_wg`` (3, 3) and ``log_scale``."""
+        if (self.stage != Stage.JOINT_UNALIGNED or K < self.config.inertial_init_keyframes
+                or K <= self.joint_start):
+            return None
+        self.stage = Stage.VISUAL_INERTIAL
+        return alignment_from_gravity(R_wg, log_scale)

@@ -1,0 +1,220 @@
+"""Dense visual-inertial odometry: the dense monocular front end with the inertial back end of VIGS-SLAM.
+
+:class:`VisualInertialOdometry` extends :class:`~vigs_core.frontend.odometry.DenseOdometry` through its hooks:
+
+* every keyframe registers its inertial state (velocity, bias) with the
+  :class:`~vigs_core.vio.estimator.VisualInertialEstimator`;
+* each dense BA receives the inertial terms of its window as
+  :class:`~vigs_core.solver.dense_ba.AdditionalTerms` (one normal equation per LM iteration, VIGS-SLAM 3.3) and
+  returns the optimised velocities and biases;
+* after each keyframe the stage machine runs (VIGS-SLAM 3.2); when the inertial-only stage succeeds the whole
+  map (keyframe poses, disparities, every frame's pose) is rescaled and gravity-aligned and a joint VI-BA
+  follows at once;
+* once metric, every frame's pose prior comes from IMU preintegration from the latest keyframe (falling back
+  to that keyframe's pose when the preintegration covariance trace exceeds tau), replacing the constant-velocity
+  model (unless ``imu_keyframe_init`` is off); before that, the rotation of the constant-velocity prediction is
+  replaced by the gyro's (rotation needs neither scale nor gravity), which keeps the flow initialisation good
+  when frames are far apart (frame stride);
+* once metric, BA holds only ``metric_fixed_keyframes`` (default 1) window keyframes fixed: the inertial terms
+  make the scale observable, so it is no longer pinned by a second fixed keyframe; the fixed keyframes also keep
+  their velocity and bias (anchor prior), so a window cannot trade the scale against velocities and biases;
+
+Still start: a monocular front end cannot initialise without parallax, so a platform standing still would get
+no pose at all. While the front end has not initialised and the frame's mean flow from the first frame stays
+below ``VioConfig.still_max_flow_px`` (the camera has not moved), the frame is held at the first frame's pose
+(the identity: the world is the first camera's frame, as for the front end). Once the front end initialises,
+its own poses replace the held ones. (The IMU's vibration level cannot tell standing from flying on EuRoC:
+the MAV's motors run while it stands.)
+
+With ``VioConfig.enabled`` off it behaves exactly like the vision-only odometry.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from vigs_core.frontend.odometry import DenseOdometry, Keyframe, OdometryConfig
+from vigs_core.imu.preintegration import preintegrate
+from vigs_core.imu.propagation import ImuState, predict_state
+from vigs_core.geometry import se3_inverse
+from vigs_core.solver import BAResult, Intrinsics
+from vigs_core.types import ImuNoise, ImuSamples
+from vigs_core.vio.config import VioConfig
+from vigs_core.vio.estimator import VisualInertialEstimator
+from vigs_core.vio.initialization import WorldAlignment
+from vigs_core.vio.keyframe_init import KeyframePrediction
+
+
+class VisualInertialOdometry(DenseOdometry):
+    """Dense monocular odometry with tightly coupled IMU fusion (module docstring).
+
+    Args:
+        intrinsics: pinhole intrinsics of the (undistorted) input images.
+        width, height: input image size, pixels.
+        imu: all IMU samples of the run (body frame, same clock as the images).
+        noise: IMU noise densities.
+        T_bc: (4, 4) camera pose in the body (IMU) frame (EuRoC ``T_BS`` of cam0).
+        config: front-end settings; vio: visual-inertial settings.
+    """
+
+    def __init__(self, intrinsics: Intrinsics, width: int, height: int, imu: ImuSamples, noise: ImuNoise,
+                 T_bc: np.ndarray | torch.Tensor, config: OdometryConfig | None = None,
+                 vio: VioConfig | None = None) -> None:
+        super().__init__(intrinsics, width, height, config)
+        self.vio_config = vio or VioConfig()
+        self.vio = VisualInertialEstimator(self.vio_config, imu, noise, T_bc)
+        self._prediction: tuple[int, KeyframePrediction] | None = None   # (frame stamp, IMU prediction)
+        self._held: list[int] = []                                          # stamps held still before init
+        self._anchored: set[int] = set()                                    # fixed keyframes of the current BA
+
+    # ------------------------------------------------------------------ hooks of DenseOdometry
+    def _new_keyframe(self, frame_idx: int, image: np.ndarray, pose: torch.Tensor, disp: torch.Tensor) -> Keyframe:
+        kf = super()._new_keyframe(frame_idx, image, pose, disp)
+        velocity = None
+        if self._prediction is not None and self._prediction[0] == kf.t_ns:
+            velocity = self._prediction[1].velocity
+        self.vio.add_keyframe(kf.id, kf.t_ns, velocity)
+        return kf
+
+    def _additional_terms(self, ids: list[int], poses: torch.Tensor):
+        out = self.vio.terms(ids, poses, self._anchored)
+        return (None, None) if out is None else out
+
+    def _after_ba(self, ids: list[int], result: BAResult) -> None:
+        if result.extra_state is not None:
+            self.vio.update(ids, result.extra_state)
+
+    def _ba(self, iterations: int, fixed: list[int] | None = None) -> None:
+        n_fixed = self.vio_config.metric_fixed_keyframes
+        if fixed is None and self.vio.metric and n_fixed > 0:
+            fixed = self.graph.keyframes[:n_fixed]   # the IMU observes the scale: no second fixed keyframe
+        self._anchored = set(self.graph.fixed_ids() if fixed is None else fixed)
+        super()._ba(iterations, fixed)
+
+    def _predict_pose(self) -> torch.Tensor:
+        frame = self.frames[-1]
+        kf = self.keyframes[self.graph.keyframes[-1]]
+        pred = self.vio.predict(kf.id, kf.pose, frame.t_ns)
+        if pred is None:
+            self._prediction = None
+            cv = super()._predict_pose()
+            R_cw = self.vio.predict_rotation(kf.id, kf.pose, frame.t_ns)
+            if R_cw is None:
+                return cv
+            out = cv.clone()   # gyro rotation, constant-velocity camera centre (the scale is not known yet)
+            out[:3, :3] = R_cw
+            out[:3, 3] = -(R_cw @ (-(cv[:3, :3].T @ cv[:3, 3])))
+            return out
+        self._prediction = (frame.t_ns, pred)
+        return pred.T_cw
+
+    def _initialize(self, T_10: torch.Tensor, disp0: torch.Tensor) -> None:
+        super()._initialize(T_10, disp0)
+        self._advance_stages()
+
+    def _track(self, image: np.ndarray) -> None:
+        before = self._next_kf
+        super()._track(image)
+        if self._next_kf != before:
+            self._advance_stages()
+
+    # ------------------------------------------------------------------ stages
+    def _advance_stages(self) -> None:
+        ids = sorted(self.keyframes)
+        stamps = np.array([self.keyframes[k].t_ns for k in ids], dtype=np.int64)
+        poses = torch.stack([self.keyframes[k].pose for k in ids])
+        t0 = self._tic()
+        alignment = self.vio.on_keyframe(ids, stamps, poses)
+        self._toc("vio_init", t0)
+        if alignment is not None:
+            self._apply_alignment(alignment)
+            self._ba(self.config.ba.iterations)
+
+    def _apply_alignment(self, al: WorldAlignment) -> None:
+        """Re-express the whole map in the metric gravity-aligned world (keyframes, disparities, frames)."""
+        for kf in self.keyframes.values():
+            kf.pose, kf.disp = al.pose(kf.pose), al.disparity(kf.disp)
+        for f in self.frames:
+            if f.rel is not None:
+                f.rel = al.relative(f.rel)
+            if f.odom is not None:
+                f.odom = al.pose(f.odom)
+
+    # ------------------------------------------------------------------ still start
+    def process(self, t_ns: int, image: np.ndarray) -> torch.Tensor | None:
+        """Consume one frame; its world->camera pose (4, 4), the first frame's while still (module docstring),
+        or None while not initialised."""
+        pose = super().process(t_ns, image)
+        if pose is None and self._still():
+            self._held.append(int(t_ns))
+            return torch.eye(4, dtype=torch.float64)
+        return pose
+
+    def _still(self) -> bool:
+        if not self.vio_config.enabled or self.initialized:
+            return False
+        if len(self.frames) == 1:
+            return True
+        corr = self.frames[-1].pending
+        from_first = bool(self._init_candidates) and self._init_candidates[0][0] == 0
+        return corr is not None and from_first and corr.mean_flow < self.vio_config.still_max_flow_px
+
+    def held_frames(self) -> np.ndarray:
+        """Stamps (M,) ns of the frames held at the first frame's pose; empty once the front end initialised."""
+        return np.zeros(0, dtype=np.int64) if self.initialized else np.array(self._held, dtype=np.int64)
+
+    def _with_held(self, t_ns: np.ndarray, poses: torch.Tensor) -> tuple[np.ndarray, torch.Tensor]:
+        held = self.held_frames()
+        if len(held) == 0:
+            return t_ns, poses
+        t_all = np.concatenate((t_ns, held))
+        order = np.argsort(t_all, kind="stable")
+        eye = torch.eye(4, dtype=torch.float64).expand(len(held), 4, 4)
+        return t_all[order], torch.cat((poses, eye))[torch.as_tensor(order)]
+
+    def final_frame_poses(self) -> tuple[np.ndarray, torch.Tensor]:
+        """The front end's final poses, plus the held still-start frames (module docstring)."""
+        return self._with_held(*super().final_frame_poses())
+
+    def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
+        """The front end's causal poses, plus the held still-start frames (module docstring)."""
+        return self._with_held(*super().odometry_poses())
+
+    # ------------------------------------------------------------------ outputs
+    def frame_velocities(self) -> tuple[np.ndarray, torch.Tensor]:
+        """Stamps (N,) ns and body velocities (N, 3) m/s in the world of every posed frame, propagated by the
+        IMU from the frame's reference keyframe state; NaN while the map is not metric."""
+        t, vel = [], []
+        g = tuple(float(x) for x in self.vio.gravity_world())
+        for f in self.frames:
+            if f.ref is None:
+                continue
+            t.append(f.t_ns)
+            if not self.vio.metric:
+                vel.append(torch.full((3,), float("nan"), dtype=torch.float64))
+                continue
+            st = self.vio.states[f.ref]
+            if f.t_ns == st.t_ns:
+                vel.append(st.velocity.clone())
+                continue
+            b = self.vio.bias_of(f.ref)
+            T_wb = se3_inverse(self.keyframes[f.ref].pose) @ self.vio.T_cb
+            pre = preintegrate(self.vio.imu, st.t_ns, f.t_ns, self.vio.noise, b[:3], b[3:], self.vio_config.scheme)
+            state = ImuState(st.t_ns, T_wb[:3, :3], T_wb[:3, 3], st.velocity, b[:3], b[3:])
+            vel.append(predict_state(state, pre, gravity=g).v)
+        return np.array(t, dtype=np.int64), torch.stack(vel) if vel else torch.zeros(0, 3, dtype=torch.float64)
+
+    def keyframe_states(self) -> dict:
+        """JSON-ready per-keyframe inertial states: stamps, velocities (m/s), biases (b_g rad/s, b_a m/s^2)."""
+        ids = sorted(self.vio.states)
+        return {
+            "t_ns": [int(self.vio.states[k].t_ns) for k in ids],
+            "velocity": [[float(x) for x in self.vio.states[k].velocity] for k in ids],
+            "bias_gyro": [[float(x) for x in self.vio.bias_of(k)[:3]] for k in ids],
+            "bias_acc": [[float(x) for x in self.vio.bias_of(k)[3:]] for k in ids],
+        }
+
+    def report(self) -> dict:
+        """The estimator's report (stage, scale history, biases, prediction counts) and the number of held
+        still-start frames, for report.json."""
+        return {**self.vio.report(), "held_still_frames": int(len(self.held_frames()))}
