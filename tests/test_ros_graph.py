@@ -98,7 +98,12 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
             n.destroy_node()
     # frontend: odometry per tracked frame, in REP-105 frames, rotations consistent with the ground truth
     odom = [odometry_to_pose(m) for m in rec.msgs["/odometry"]]
-    assert len(odom) >= n_frames // 2
+    # every frame tracked (the first image arrives before the first camera info: held, then processed), one
+    # odometry message per frame with a causal pose (those before the monocular initialisation have none;
+    # about half of this 2 s sequence)
+    counters = nodes[1].status.counters
+    assert counters["frames_tracked"] == n_frames and len(odom) == counters["odometry_out"]
+    assert len(odom) >= n_frames // 3, counters
     assert {(o["frame_id"], o["child_frame_id"]) for o in odom} == {("odom", "base_link")}
     gt_body = {int(t): T @ np.linalg.inv(sim_bag.T_BS) for t, T in zip(sim_bag.frame_t_ns, sim_bag.T_WC)}
     first, last = odom[0], odom[-1]
@@ -137,7 +142,7 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
     disp_before = engine.odometry.keyframes[ids[-1]].disp.clone()
     assert engine.apply_corrections({k: G @ before[k] for k in ids}, {k: 1.25 for k in ids}) == len(ids)
     for k in ids:
-        np.testing.assert_allclose(np.linalg.inv(engine.odometry.keyframes[k].pose.numpy()), G @ before[k], atol=1e-9)
+        np.testing.assert_allclose(np.linalg.inv(engine.odometry.keyframes[k].pose.numpy()), G @ before[k], atol=1e-6)
     np.testing.assert_allclose(engine.odometry.keyframes[ids[-1]].disp.numpy(), disp_before.numpy() / 1.25)
 
 
@@ -257,4 +262,62 @@ def test_nodes_report_invalid_input(ros_context):
     pub_img.publish(numpy_to_image(types, np.zeros((24, 32), np.uint8), "mono8", 50_000_000, "cam"))
     assert spin_until(executor, lambda: c_front.get("warn.core_error", 0) == 1 and len(acks) > n_acks)
     for n in (frontend, imu_node, src):
+        n.destroy_node()
+
+
+def test_frontend_camera_yaml_and_saved_outputs(ros_context, sim_bag, tmp_path):
+    """``camera_yaml`` replaces CameraInfo (bags without it, e.g. ROS 1 EuRoC bags): the engine exists at start,
+    T_body_camera comes from the file's T_BS, no CameraInfo subscription; images are tracked; at close the
+    trajectories and the report are written to ``output_dir``. A missing file is a clear error."""
+    import json
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+
+    from msg_adapters.image import numpy_to_image
+    from msg_adapters.types import RclpyTypes
+    from vigs_core.io import CameraCalibration, read_tum, write_camera_yaml
+    from vigs_core.sim.hybrid import SimConfig, SimSequence, euroc_cam0_calibration, synthetic_source
+    from vigs_core.sim.trajectory import ProceduralConfig, ProceduralMotion
+    from vigs_core.types import ImuNoise
+    from vigs_ros.frontend_node import FrontendNode
+    from vigs_ros.qos import sensor_qos
+
+    yaml_path = tmp_path / "sensor.yaml"
+    write_camera_yaml(yaml_path, CameraCalibration(sim_bag.camera, sim_bag.T_BS, 20.0))
+    P = Parameter
+    with pytest.raises(FileNotFoundError, match="missing.yaml"):
+        FrontendNode(context=ros_context, parameter_overrides=[P("camera_yaml", value=str(tmp_path / "missing.yaml"))])
+    frontend = FrontendNode(context=ros_context, parameter_overrides=[
+        P("camera_yaml", value=str(yaml_path)), P("sync_imu", value=False), P("output_dir", value=str(tmp_path / "out")),
+        P("width", value=sim_bag.camera.width), P("height", value=sim_bag.camera.height)])
+    assert frontend.engine is not None and frontend.camera == sim_bag.camera
+    np.testing.assert_allclose(frontend.T_bc, sim_bag.T_BS, atol=1e-9)
+    src = Node("yaml_source", context=ros_context)
+    pub = src.create_publisher(Image, "/image", sensor_qos(10))
+    assert src.count_subscribers("/camera_info") == 0
+    executor = SingleThreadedExecutor(context=ros_context)
+    for n in (frontend, src):
+        executor.add_node(n)
+    assert spin_until(executor, lambda: src.count_subscribers("/image") > 0)
+    cal = euroc_cam0_calibration()
+    motion = ProceduralMotion(0, cal.T_BS[:3, :3], ProceduralConfig(duration_s=3.0))
+    seq = SimSequence(synthetic_source(motion, ImuNoise(), noise_free=True), sim_bag.camera, cal.T_BS,
+                      SimConfig(duration_s=2.0, with_depth=False))
+    types, n_frames = RclpyTypes(), 0
+    for frame in seq.frames():
+        image = frame.image if frame.image.ndim == 2 else frame.image[..., 0]
+        pub.publish(numpy_to_image(types, image, "mono8", frame.t_ns, "cam0"))
+        n_frames += 1
+        assert spin_until(executor, lambda: frontend.frames_in == n_frames)
+    frontend.close()
+    report = json.loads((tmp_path / "out" / "frontend_report.json").read_text())
+    assert report["frames_in"] == report["frames_tracked"] == n_frames
+    traj = read_tum(tmp_path / "out" / "trajectory.txt")
+    assert len(traj) == report["frames_posed"] > 0
+    assert set(traj.t_ns) <= set(int(t) for t in seq.frame_t_ns)
+    assert (tmp_path / "out" / "keyframes.txt").is_file() and (tmp_path / "out" / "odometry.txt").is_file()
+    for n in (frontend, src):
         n.destroy_node()

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 from ros_bags import rosbags_types, write_ros2_bag
-from ros_helpers import isolated_env, ros_context  # noqa: F401  (ros_context is a fixture)
+from ros_helpers import DOMAIN_ID, isolated_env, ros_context  # noqa: F401  (ros_context is a fixture)
 
 from msg_adapters.imu import sample_to_imu
 from vigs_ros.launch import LaunchConfig, Supervisor, bag_input_remaps, commands
@@ -21,8 +21,11 @@ from vigs_ros.launch import LaunchConfig, Supervisor, bag_input_remaps, commands
 class Launched:
     """``vigs launch ARGS`` in a subprocess, its output collected line by line."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", *args], env=isolated_env(),
+    def __init__(self, *args: str, domain_id: int | None = None):
+        env = isolated_env()
+        if domain_id is not None:
+            env["ROS_DOMAIN_ID"] = str(domain_id)
+        self.proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", *args], env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         self.reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
@@ -143,8 +146,10 @@ def test_composed_launch_with_bag_ends_after_replay(tmp_path):
     msgs = [("/imu0", "sensor_msgs/msg/Imu", t0 + k * 5_000_000,
              sample_to_imu(types, t0 + k * 5_000_000, np.zeros(3), [0, 0, 9.81])) for k in range(40)]
     bag = write_ros2_bag(tmp_path / "bag", msgs)
+    # a domain of its own: a node the previous test stopped can linger in DDS discovery for a while, and the
+    # replay would take it for the subscriber it waits for
     run = Launched("--composed", "--nodes", "imu_preintegration", "--bag", str(bag), "--remap", "/imu0:=/imu",
-                   "--rate", "2", "--linger", "0.5")
+                   "--rate", "2", "--linger", "0.5", domain_id=(DOMAIN_ID - 10 + 45) % 91 + 10)
     try:
         assert run.wait(90.0) == 0, run.output
     finally:

@@ -14,7 +14,11 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
 * in ``image_topic`` (sensor_msgs/Image, or sensor_msgs/CompressedImage when ``image_transport`` is
   ``compressed``; sensor-data QoS). Encodings mono8, rgb8, bgr8; others are rejected with a warning.
 * in ``camera_info_topic`` (sensor_msgs/CameraInfo, sensor-data QoS): intrinsics and distortion
-  (plumb_bob, equidistant); frames wait for it, and its absence is reported as an error.
+  (plumb_bob, equidistant); frames wait for it (the newest ``image_queue_depth`` are held and processed once it
+  arrives), and its absence for ``camera_info_timeout_s`` is reported as an error (frames are then dropped). With ``camera_yaml``
+  (EuRoC ``sensor.yaml`` or a Kalibr camchain, :func:`vigs_core.io.read_camera_yaml`) the camera comes from that
+  file instead (bags without CameraInfo, e.g. ROS 1 EuRoC bags), its ``T_BS`` replaces ``T_body_camera`` unless
+  ``camera_yaml_extrinsic`` is false, and CameraInfo messages are ignored.
 * in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS) when ``sync_imu``: frames are processed in stamp order
   once the IMU reaches their stamp (+ ``time_offset_s``), at most ``max_imu_wait_s`` of frame time late
   (:class:`vigs_ros.time_sync.FrameSynchronizer`); frames released without IMU coverage are reported.
@@ -24,7 +28,8 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
   depth scales), applied to the odometry as the in-process loop closure does
   (:meth:`FrontendEngine.apply_corrections`); the map frame jumps, ``odom`` stays continuous (REP-105).
 * out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105);
-  ``path_topic`` (nav_msgs/Path, transient-local) of the frame poses in ``map_frame``;
+  ``path_topic`` (nav_msgs/Path, transient-local) of the frame poses in ``map_frame`` (re-expressed as a whole
+  when the map frame jumps);
   ``/tf``: ``map_frame -> odom_frame -> base_frame``; ``/tf_static``: ``base_frame -> camera_frame``
   (``T_body_camera``).
 * out ``keyframe_topic`` (vigs_msgs/Keyframe, transient-local, depth 20): image, disparity, pose, intrinsics;
@@ -32,9 +37,18 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
   ``keyframe_update_topic`` (vigs_msgs/KeyframePoseUpdate) when BA moves earlier keyframes;
   ``frame_done_topic`` (std_msgs/Header, one per consumed frame: replay ``--fast`` paces on it);
   ``status_topic`` (diagnostics).
+
+Outputs at shutdown (``output_dir``; empty: none), as ``vigs run`` writes them: ``trajectory.txt`` (TUM, body
+pose ``T_WB = T_WC T_body_camera^-1`` of every posed frame relative to the final keyframe poses, i.e. after
+BA, IMU initialisation and loop corrections), ``odometry.txt`` (each frame's pose as first estimated,
+re-expressed in the final world at IMU initialisation, like ``vigs run``'s), ``keyframes.txt`` (final
+keyframe body poses) and ``frontend_report.json`` (frames received / tracked / posed / still pending,
+keyframes, the IMU initialisation's stamp, the node's counters).
 """
 from __future__ import annotations
 
+import json
+import pathlib
 import sys
 import time
 import traceback
@@ -80,6 +94,11 @@ PARAMS = [
     ParamSpec("image_topic", "/image", "input image topic (Image, or CompressedImage with image_transport=compressed)"),
     ParamSpec("image_transport", "raw", "raw (sensor_msgs/Image) or compressed (sensor_msgs/CompressedImage)"),
     ParamSpec("camera_info_topic", "/camera_info", "input sensor_msgs/CameraInfo topic"),
+    ParamSpec("camera_yaml", "", "camera calibration file (EuRoC sensor.yaml / Kalibr camchain) used instead of "
+                                 "CameraInfo (empty: use CameraInfo)"),
+    ParamSpec("camera_yaml_extrinsic", True, "with camera_yaml: take T_body_camera from the file's T_BS"),
+    ParamSpec("output_dir", "", "at shutdown write trajectory.txt, odometry.txt, keyframes.txt (TUM, body poses) "
+                                "and frontend_report.json here (empty: nothing)"),
     ParamSpec("imu_topic", "/imu", "input sensor_msgs/Imu topic, for synchronising frames with the IMU"),
     ParamSpec("sync_imu", True, "process a frame only once the IMU has reached its stamp"),
     ParamSpec("max_imu_wait_s", 0.5, "a frame waits at most this much frame time for the IMU (s)"),
@@ -125,6 +144,14 @@ class FrontendNode(VigsNode):
         if self.p["image_transport"] not in ("raw", "compressed"):
             raise ValueError(f"image_transport must be raw or compressed, got {self.p['image_transport']!r}")
         self.T_bc = matrix_from_param(self.p["T_body_camera"], "T_body_camera")
+        yaml_camera = None
+        if self.p["camera_yaml"]:
+            from vigs_core.io import read_camera_yaml
+
+            calibration = read_camera_yaml(self.p["camera_yaml"])  # ValueError / FileNotFoundError name the file
+            yaml_camera = calibration.camera
+            if self.p["camera_yaml_extrinsic"]:
+                self.T_bc = matrix_from_param(np.asarray(calibration.T_BS).reshape(-1), "camera_yaml T_BS")
         self.offset_ns = int(round(float(self.p["time_offset_s"]) * 1e9))
         self.types = RclpyTypes()
         self.status = StatusReporter(self, self.p["status_topic"], self.p["status_period_s"])
@@ -136,9 +163,12 @@ class FrontendNode(VigsNode):
         self.camera: CameraModel | None = None
         self.engine: FrontendEngine | None = None
         self.frames_in = 0
+        self.realigned_at_ns: int | None = None
         self.frames = Rep105Frames()
         self.path_poses = []
+        self.path_stale = False  # a correction moved the map frame: rebuild the path at the next frame
         self.first_image_wall: float | None = None
+        self.held_for_camera: list[tuple[np.ndarray, str, object]] = []  # (image, encoding, header)
         self.frames_since_path = 0
         self.imu = ImuBuffer(ImuBufferConfig(self.p["rate_hz"], max_age_s=float(self.p["imu_buffer_s"])))
         self.sync = FrameSynchronizer(self.offset_ns, max_pending=int(self.p["image_queue_depth"]),
@@ -159,7 +189,10 @@ class FrontendNode(VigsNode):
             self.create_subscription(CompressedImage, self.p["image_topic"], self.on_image, sensor_qos(depth))
         else:
             self.create_subscription(Image, self.p["image_topic"], self.on_image, sensor_qos(depth))
-        self.create_subscription(CameraInfo, self.p["camera_info_topic"], self.on_camera_info, sensor_qos(5))
+        if yaml_camera is None:
+            self.create_subscription(CameraInfo, self.p["camera_info_topic"], self.on_camera_info, sensor_qos(5))
+        else:
+            self.set_camera(yaml_camera)
         if self.p["sync_imu"]:
             self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.create_subscription(PreintegratedImu, self.p["preintegrated_topic"], self.on_preintegrated,
@@ -178,16 +211,23 @@ class FrontendNode(VigsNode):
             self.status.warn("camera_info", f"camera info rejected: {exc}")
             return
         if self.camera is None:
-            self.camera = camera
-            self.engine = FrontendEngine(camera, self.config, self.T_bc, self.imu if self.p["sync_imu"] else None,
-                                         self.noise)
-            self.status.info["core"] = type(self.engine.odometry).__name__
-            self.status.clear_error("camera_info")
-            self.status.info["camera"] = (f"{camera.width}x{camera.height} {camera.distortion} -> processing "
-                                          f"{self.engine.camera.width}x{self.engine.camera.height}")
-            self.get_logger().info(f"camera: {self.status.info['camera']}")
+            self.set_camera(camera)
         elif camera != self.camera:
             self.status.warn("camera_info", "camera info changed while running: keeping the first one")
+
+    def set_camera(self, camera: CameraModel) -> None:
+        """Create the engine for ``camera`` (from the first CameraInfo, or from ``camera_yaml``)."""
+        self.camera = camera
+        self.engine = FrontendEngine(camera, self.config, self.T_bc, self.imu if self.p["sync_imu"] else None,
+                                     self.noise)
+        self.status.info["core"] = type(self.engine.odometry).__name__
+        self.status.clear_error("camera_info")
+        self.status.info["camera"] = (f"{camera.width}x{camera.height} {camera.distortion} -> processing "
+                                      f"{self.engine.camera.width}x{self.engine.camera.height}")
+        self.get_logger().info(f"camera: {self.status.info['camera']}")
+        held, self.held_for_camera = self.held_for_camera, []
+        for image, encoding, header in held:  # images that arrived before the camera info
+            self.accept_frame(image, encoding, header)
 
     def on_imu(self, msg: Imu) -> None:
         try:
@@ -216,21 +256,33 @@ class FrontendNode(VigsNode):
         if self.engine is None:
             now = time.monotonic()
             self.first_image_wall = self.first_image_wall or now
+            self.status.count("frames_without_camera_info")
+            self.held_for_camera.append((image, encoding, msg.header))
             if now - self.first_image_wall >= self.p["camera_info_timeout_s"]:
                 self.status.set_error("camera_info", f"images arrive but no camera info on "
                                                      f"{self.p['camera_info_topic']}")
-            self.status.count("frames_without_camera_info")
-            self.frame_done(msg.header)
+                held, self.held_for_camera = self.held_for_camera, []  # stop holding: a replay waits for acks
+                for *_, header in held:
+                    self.status.count("frames_dropped_without_camera_info")
+                    self.frame_done(header)
+            elif len(self.held_for_camera) > int(self.p["image_queue_depth"]):
+                header = self.held_for_camera.pop(0)[2]
+                self.status.count("frames_dropped_without_camera_info")
+                self.frame_done(header)
             return
+        self.accept_frame(image, encoding, msg.header)
+
+    def accept_frame(self, image: np.ndarray, encoding: str, header) -> None:
+        """A decoded intensity image, once the camera is known: checked, synchronised with the IMU, tracked."""
         if image.shape[:2] != (self.camera.height, self.camera.width):
             self.status.warn("image_size", f"image is {image.shape[1]}x{image.shape[0]} but camera info says "
                                            f"{self.camera.width}x{self.camera.height}: dropped")
-            self.frame_done(msg.header)
+            self.frame_done(header)
             return
         if not self.p["sync_imu"]:
-            self.track(stamp_to_ns(msg.header.stamp) + self.offset_ns, image, encoding, msg.header)
+            self.track(stamp_to_ns(header.stamp) + self.offset_ns, image, encoding, header)
             return
-        remark = self.sync.push(stamp_to_ns(msg.header.stamp), (image, encoding, msg.header))
+        remark = self.sync.push(stamp_to_ns(header.stamp), (image, encoding, header))
         if remark is not None:
             self.status.warn("frame_sync", remark)
         self.process_ready()
@@ -285,6 +337,7 @@ class FrontendNode(VigsNode):
         n = self.engine.apply_corrections(dict(zip(ids, update.poses)), dict(zip(ids, update.scales)))
         if n:
             self.frames.mark_correction()
+            self.path_stale = True
             self.status.count("corrections_applied")
             self.get_logger().info(f"applied loop-closure corrections to {n} keyframes")
 
@@ -299,17 +352,22 @@ class FrontendNode(VigsNode):
         T_wb = body_from_camera(out.T_wc, self.T_bc)
         if out.realigned:  # IMU initialisation re-expressed the world: map jumps, odom stays continuous
             self.frames.mark_correction()
+            self.realigned_at_ns = out.t_ns
             self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
         T_map_odom, T_odom_base = self.frames.update(T_wb)
         self.pub_odom.publish(pose_to_odometry(self.types, out.t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
+        self.status.count("odometry_out")
         if p["publish_tf"]:
             self.pub_tf.publish(tf_message(self.types, [
                 StampedTransform(out.t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
                 StampedTransform(out.t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
-        self.path_poses.append(self.types.new("geometry_msgs/msg/PoseStamped",
-                                              header=make_header(self.types, out.t_ns, p["map_frame"]),
-                                              pose=pose_msg(self.types, T_wb)))
-        del self.path_poses[:-int(p["path_max_poses"])]
+        if out.realigned or self.path_stale:  # the map frame was re-expressed: so is every pose of the path
+            self.rebuild_path()
+        else:
+            self.path_poses.append(self.types.new("geometry_msgs/msg/PoseStamped",
+                                                  header=make_header(self.types, out.t_ns, p["map_frame"]),
+                                                  pose=pose_msg(self.types, T_wb)))
+            del self.path_poses[:-int(p["path_max_poses"])]
         for kf in out.new_keyframes:
             kf.frame_id, kf.camera_frame_id = p["map_frame"], p["camera_frame"]
             self.pub_kf.publish(keyframe_to_msg(self.types, kf))
@@ -328,17 +386,64 @@ class FrontendNode(VigsNode):
                 newest, kf.t_ns, invert(kf.pose.numpy()), self.engine.keyframe_state(newest),
                 out.inertial_initialized)))
         self.frames_since_path += 1
-        if out.new_keyframes or self.frames_since_path >= int(p["path_every_n"]):
+        if out.new_keyframes or out.realigned or self.frames_since_path >= int(p["path_every_n"]):
             self.frames_since_path = 0
             self.pub_path.publish(self.types.new("nav_msgs/msg/Path",
                                                  header=make_header(self.types, out.t_ns, p["map_frame"]),
                                                  poses=list(self.path_poses)))
 
 
+    def rebuild_path(self) -> None:
+        """The path's poses from the engine's current frame poses (after the map frame was re-expressed by the
+        IMU initialisation or corrected by loop closure), so that the path stays in one frame."""
+        t_ns, T_cw = self.engine.odometry.final_frame_poses()
+        keep = int(self.p["path_max_poses"])
+        self.path_poses = [self.types.new("geometry_msgs/msg/PoseStamped",
+                                          header=make_header(self.types, int(t), self.p["map_frame"]),
+                                          pose=pose_msg(self.types, body_from_camera(invert(T), self.T_bc)))
+                           for t, T in zip(t_ns[-keep:], T_cw.numpy()[-keep:])]
+        self.path_stale = False
+
+    def close(self) -> None:
+        """Write the outputs of the run to ``output_dir`` (module docstring). Reports go to stderr: the
+        context (and so /rosout) may already be shut down."""
+        if not self.p["output_dir"]:
+            return
+        out = pathlib.Path(self.p["output_dir"])
+        report = {"frames_in": self.status.counters.get("images_in", 0), "frames_tracked":
+                  self.status.counters.get("frames_tracked", 0), "frames_pending_at_shutdown": len(self.sync),
+                  "counters": dict(sorted(self.status.counters.items())), "info": dict(self.status.info)}
+        if self.engine is not None:
+            report.update(save_trajectories(self.engine, self.T_bc, out))
+        report["inertial_initialized_at_s"] = None if self.realigned_at_ns is None else self.realigned_at_ns * 1e-9
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "frontend_report.json").write_text(json.dumps(report, indent=2))
+        print(f"[frontend] wrote {out}/trajectory.txt ({report.get('frames_posed', 0)} frames), odometry.txt, "
+              f"keyframes.txt, frontend_report.json", file=sys.stderr)
+
     def nav_state(self, kf_id: int, t_ns: int, T_wc: np.ndarray, state, inertial: bool) -> NavStateData:
         """The body's navigation state at a keyframe (pose from the camera pose and T_body_camera)."""
         return NavStateData(t_ns, kf_id, body_from_camera(T_wc, self.T_bc), state.velocity, state.bias_gyro,
                             state.bias_acc, inertial, self.p["map_frame"])
+
+
+def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Path) -> dict:
+    """Write the engine's final frame poses (``trajectory.txt``), causal poses (``odometry.txt``) and keyframe
+    poses (``keyframes.txt``) as TUM body poses ``T_WB = T_WC T_bc^-1``; returns their counts."""
+    from vigs_core.io import write_tum
+    from vigs_core.system.pipeline import poses_to_trajectory
+
+    odo = engine.odometry
+    counts = {}
+    for name, (t_ns, T_cw) in (("trajectory", odo.final_frame_poses()), ("odometry", odo.odometry_poses()),
+                               ("keyframes", odo.keyframe_poses())):
+        T_cw = T_cw.numpy() if len(t_ns) else np.zeros((0, 4, 4))
+        T_wb = np.linalg.inv(T_cw) @ np.linalg.inv(T_bc)  # as vigs run computes it
+        write_tum(out / f"{name}.txt", poses_to_trajectory(t_ns, T_wb))
+        counts[f"{name}_poses"] = int(len(t_ns))
+    counts["frames_posed"] = counts.pop("trajectory_poses")
+    counts["keyframes"] = counts.pop("keyframes_poses")
+    return counts
 
 
 def main(args: list[str] | None = None) -> int:

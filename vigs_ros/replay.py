@@ -46,6 +46,9 @@ class ReplayConfig:
             one before waiting for its acknowledgement.
         wait_for: published topics that must have a subscriber before replay starts.
         wait_timeout_s: longest wait for those subscribers (s).
+        settle_s: once they are matched, wait this long before the first message (s): Fast DDS reports a
+            match before a fresh best-effort reader's transport receives, and the first messages were lost
+            without it (measured: the first image and camera info of a replay, about one run in two).
         start_offset_s: skip this much of the bag's beginning (s).
         duration_s: replay at most this much recorded time (s; <= 0: all).
     """
@@ -61,6 +64,7 @@ class ReplayConfig:
     fast_lookahead_s: float = 0.1
     wait_for: list[str] = field(default_factory=list)
     wait_timeout_s: float = 10.0
+    settle_s: float = 1.0
     start_offset_s: float = 0.0
     duration_s: float = 0.0
 
@@ -189,7 +193,7 @@ class BagPlayer:
         if self.config.fast:
             from std_msgs.msg import Header
 
-            self.node.create_subscription(Header, self.config.ack_topic, self._on_ack, replay_qos())
+            self._ack_sub = self.node.create_subscription(Header, self.config.ack_topic, self._on_ack, replay_qos())
             self._executor = SingleThreadedExecutor(context=self.context)
             self._executor.add_node(self.node)
             self._spin_thread = threading.Thread(target=self._spin, daemon=True)
@@ -209,13 +213,29 @@ class BagPlayer:
             self._ack_cond.notify_all()
 
     def wait_for_subscribers(self) -> list[str]:
-        """Wait until every ``wait_for`` topic has a subscriber; returns those still without one."""
+        """Wait until every ``wait_for`` topic has a subscriber and, in ``fast`` mode with ``wait_for`` topics,
+        the acknowledgement topic a publisher (so the first acknowledgement is not lost to discovery);
+        returns the topics still missing one."""
         deadline = time.monotonic() + self.config.wait_timeout_s
         missing = list(self.config.wait_for)
+        if self.config.fast and missing:
+            missing.append(self.config.ack_topic)
+
+        def has_peer(topic: str) -> bool:
+            # matched endpoints (not just discovered ones): a best-effort reader that is discovered but not
+            # yet matched would lose the first messages
+            if topic == self.config.ack_topic and self.config.fast:
+                return self._ack_sub.get_publisher_count() > 0
+            if topic in self.publishers:
+                return self.publishers[topic].get_subscription_count() > 0
+            return self.node.count_subscribers(topic) > 0
+
         while missing and time.monotonic() < deadline and self.context.ok():
-            missing = [t for t in missing if self.node.count_subscribers(t) == 0]
+            missing = [t for t in missing if not has_peer(t)]
             if missing:
                 time.sleep(0.05)
+        if self.config.wait_for:
+            time.sleep(self.config.settle_s)
         return missing
 
     def play(self, stop: threading.Event | None = None) -> ReplayStats:
@@ -274,8 +294,9 @@ class BagPlayer:
             self.stats.ack_timeouts += 1
 
     def close(self) -> None:
-        if self._executor is not None:
-            self._executor.shutdown(timeout_sec=1.0)
+        if self._executor is not None:  # stop the spin thread before its node goes away
+            self._executor.shutdown(timeout_sec=5.0)
+            self._spin_thread.join(timeout=5.0)
         self.node.destroy_node()
         self.reader.close()
 
