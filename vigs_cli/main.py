@@ -13,6 +13,11 @@ import sys
 SUBCOMMANDS = {
     "eval": ("vigs_cli.eval_cmd", "trajectory accuracy: ATE, RPE, recall against ground truth"),
     "bench": ("vigs_cli.bench_cmd", "run a benchmark script from benchmarks/ (prints a table)"),
+    "launch": ("vigs_cli.launch_cmd", "start the ROS 2 node graph (separate processes or --composed), optionally on a bag"),
+    "replay": ("vigs_cli.replay_cmd", "publish a ROS 2 (MCAP/sqlite3) or ROS 1 bag with /clock at a rate or --fast"),
+    "imu-check": ("vigs_cli.imu_check_cmd", "IMU stream health: rate, jitter, gaps, static bias/noise, NEES vs ground truth"),
+    "sim": ("vigs_cli.sim_cmd", "render a visual-inertial sequence (images, depth, IMU, ground truth) to ASL / ROS 2 bag"),
+    "run": ("vigs_cli.run_cmd", "dense monocular odometry on an EuRoC ASL folder or a ROS bag: trajectories + report"),
 }
 
 

@@ -1,0 +1,110 @@
+"""Frontend components: DIS correspondences on synthetic warps, keyframe policy, frame graph updates."""
+import cv2
+import numpy as np
+import pytest
+
+from vigs_core.frontend import (DISFlowConfig, DISFlowEstimator, FrameGraph, FrameGraphConfig, KeyframePolicy,
+                                KeyframePolicyConfig, PixelGrid)
+
+cv2.setNumThreads(1)
+W, H = 192, 128
+
+
+def texture(seed=0, w=W, h=H):
+    rng = np.random.default_rng(seed)
+    img = np.zeros((h, w), np.float32)
+    for sigma, amp in ((1.5, 1.0), (4.0, 1.5), (12.0, 2.0)):
+        b = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), sigma)
+        img += amp * b / b.std()
+    return np.clip(128 + 18 * img, 0, 255).astype(np.uint8)
+
+
+def warp(img, A):
+    """Target image under the affine map x' = A [x, y, 1] (A (2, 3)) of the source."""
+    return cv2.warpAffine(img, A, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def test_grid_coords_are_cell_centres():
+    g = PixelGrid(40, 24, 8)
+    c = g.coords()
+    assert (g.rows, g.cols, g.size) == (3, 5, 15)
+    assert np.allclose(c[0], [3.5, 3.5]) and np.allclose(c[-1], [35.5, 19.5])
+    cell, inside = g.cell_of(np.array([[3.5, 3.5], [39.9, 23.9], [40.0, 1.0]]))
+    assert list(cell[:2]) == [0, 14] and list(inside) == [True, True, False]
+    with pytest.raises(ValueError):
+        PixelGrid(4, 4, 8)
+
+
+@pytest.mark.parametrize("A", [np.float32([[1, 0, 3.3], [0, 1, -2.1]]),
+                               np.float32([[1.02, 0.01, -1.5], [-0.01, 1.02, 2.0]])])
+def test_dis_recovers_affine_warp(A):
+    src = texture()
+    dst = warp(src, A)
+    est = DISFlowEstimator(PixelGrid(W, H, 8), DISFlowConfig(preset="medium", finest_scale=0))
+    corr = est.estimate(src, dst)
+    c = est.grid.coords()
+    truth = c @ A[:, :2].T.astype(np.float64) + A[:, 2]
+    err = np.linalg.norm(corr.target - truth, axis=1)
+    good = corr.weight > 0.5
+    assert good.mean() > 0.7
+    assert np.median(err[good]) < 0.15
+    assert corr.mean_flow == pytest.approx(np.linalg.norm(truth - c, axis=1).mean(), abs=0.5)
+
+
+def test_initial_flow_helps_large_motion_and_confidence_flags_occlusion():
+    src = texture(1)
+    A = np.float32([[1, 0, 40.0], [0, 1, 0.0]])
+    dst = warp(src, A)
+    # paste an unrelated patch: the correspondences that land there must lose confidence
+    dst[40:88, 100:150] = texture(7)[40:88, 100:150]
+    est = DISFlowEstimator(PixelGrid(W, H, 8), DISFlowConfig(preset="ultrafast"))
+    c = est.grid.coords()
+    truth = c + [40.0, 0.0]
+    guided = est.estimate(src, dst, initial_target=truth + 1.5)
+    unguided = est.estimate(src, dst)
+    inside = (truth[:, 0] < W - 8)
+    err = lambda c: np.median(np.linalg.norm(c.target - truth, axis=1)[inside])
+    assert err(guided) < 0.1 * err(unguided)  # the warp initialisation carries DIS past its search range
+    occl = inside & (truth[:, 0] > 104) & (truth[:, 0] < 146) & (truth[:, 1] > 44) & (truth[:, 1] < 84)
+    clean = inside & ~occl & (guided.weight > 0.5)
+    assert np.median(np.linalg.norm(guided.target - truth, axis=1)[clean]) < 0.5
+    assert guided.weight[occl].mean() < 0.3 * guided.weight[inside & ~occl].mean()
+    # targets beyond the image border have zero confidence
+    assert np.all(guided.weight[truth[:, 0] > W - 1] == 0)
+
+
+def test_keyframe_policy():
+    p = KeyframePolicy(KeyframePolicyConfig(flow_threshold_px=2.4, max_interval_s=3.0, translation_flow_px=None))
+    assert not p.is_keyframe(2.0, 0.5)
+    assert p.is_keyframe(2.5, 0.5)
+    assert p.is_keyframe(0.0, 3.0)
+    # with the translation test: rotation-only flow makes no keyframe until the total flow is large
+    q = KeyframePolicy(KeyframePolicyConfig(translation_flow_px=8.0, max_flow_px=48.0, max_interval_s=3.0))
+    assert not q.is_keyframe(30.0, 0.5, translation_flow_px=1.0)
+    assert q.is_keyframe(30.0, 0.5, translation_flow_px=9.0)
+    assert q.is_keyframe(50.0, 0.5, translation_flow_px=0.0)
+    assert q.is_keyframe(0.0, 3.0, translation_flow_px=0.0)
+    assert q.is_keyframe(17.0, 0.5) and not q.is_keyframe(15.0, 0.5)  # no translation flow: total flow
+
+
+def test_frame_graph_edges_and_sliding_window():
+    g = FrameGraph(FrameGraphConfig(window=4, fixed=2, temporal_radius=1, covis_max_flow_px=30.0,
+                                    covis_max_edges=1))
+    flows = {(0, 2): 10.0, (0, 3): 25.0, (1, 3): 40.0}
+    pf = lambda i, j: flows.get((i, j), 99.0)
+    assert g.add_keyframe(0, pf) == ([], [])
+    assert g.fixed_ids() == [0]
+    new, removed = g.add_keyframe(1, pf)
+    assert set(new) == {(0, 1), (1, 0)} and removed == []
+    new, _ = g.add_keyframe(2, pf)
+    assert set(new) == {(1, 2), (2, 1), (0, 2), (2, 0)}       # temporal + co-visible (flow 10 < 30)
+    new, _ = g.add_keyframe(3, pf)
+    assert set(new) == {(2, 3), (3, 2), (0, 3), (3, 0)}       # (1, 3) flow 40 is not co-visible
+    assert g.fixed_ids() == [0, 1]
+    new, removed = g.add_keyframe(4, pf)
+    assert removed == [0] and g.keyframes == [1, 2, 3, 4]
+    assert all(0 not in e for e in g.edges)
+    assert (3, 4) in g.edges and (4, 3) in g.edges
+    with pytest.raises(ValueError):
+        g.add_keyframe(2, pf)

@@ -1,0 +1,6 @@
+"""The in-process pipeline (``vigs run``): configuration, inputs (EuRoC ASL, ROS bags), the run loop, outputs."""
+from vigs_core.system.config import PipelineConfig, apply_overrides, load_config
+from vigs_core.system.sources import InputSequence, open_input
+from vigs_core.system.pipeline import Preprocessor, run_pipeline
+
+__all__ = [name for name in dir() if not name.startswith("_")]

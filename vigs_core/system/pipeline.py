@@ -1,0 +1,230 @@
+"""The in-process pipeline behind ``vigs run``: read frames, undistort and resize them, run the dense
+odometry on every frame, write trajectories and a JSON report (with accuracy when ground truth exists).
+
+Outputs in the output folder:
+
+* ``trajectory.txt``: TUM, every posed frame, body (IMU) pose in the world ``T_WB = T_WC inv(T_BS)``, frames
+  relative to the final keyframe poses;
+* ``trajectory_cam.txt``: the same as camera poses ``T_WC``;
+* ``odometry.txt``: TUM body poses as output causally while running (camera-rate odometry);
+* ``keyframes.txt``: TUM body poses of the keyframes;
+* ``report.json``: counts, seconds per stage, frames/s, peak memory, accuracy (Sim(3)-aligned ATE and
+  recall against the ground truth sampled at the frame times).
+
+The world frame is the first camera's at an arbitrary monocular scale (hence the Sim(3) alignment). With IMU data
+and ``imu.enabled`` the odometry is visual-inertial (:mod:`vigs_core.vio`): once the IMU is initialised the world
+is metric and gravity-aligned, ``velocity.txt`` holds every posed frame's body velocity (m/s) and report.json
+adds ``vio`` (stage, scale history, biases, keyframe states) and ``accuracy_se3`` (no scale correction).
+With ``loop.enabled`` loop closure (:class:`vigs_core.loop.LoopClosureDriver`: detection and Sim(3) PGBA on a
+worker thread) corrects the keyframes as it goes; report.json adds ``loop`` (candidates, loops found and
+rejected, PGBA runs and seconds). With ``mapping.enabled`` the Gaussian mapper
+(:class:`vigs_core.system.mapping.OnlineMapping`) maps the keyframes on a worker thread: ``map.ply`` (3DGS
+layout) and ``map.json`` (keyframes) are written and report.json adds ``mapping`` (Gaussians, keyframes mapped,
+seconds, PSNR/SSIM on non-keyframe frames at the final poses, before and after the optional final refinement).
+"""
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from vigs_core.camera import CameraModel, Undistorter, inner_pinhole
+from vigs_core.frontend.odometry import DenseOdometry
+from vigs_core.geometry import interpolate_poses, matrix_to_quat
+from vigs_core.loop import LoopClosureDriver
+from vigs_core.solver import Intrinsics
+from vigs_core.system.config import PipelineConfig
+from vigs_core.system.mapping import OnlineMapping
+from vigs_core.system.sources import InputSequence, open_input
+from vigs_core.types import ImuNoise, Trajectory
+from vigs_core.vio.odometry import VisualInertialOdometry
+
+
+class Preprocessor:
+    """Undistorts to a pinhole camera and resizes to the processing resolution in one remap.
+
+    Attributes:
+        camera: the pinhole camera of the output images.
+    """
+
+    def __init__(self, src: CameraModel, width: int, height: int) -> None:
+        self._undistorter = None
+        if src.distortion != "none":
+            self.camera = inner_pinhole(src, width, height)
+            self._undistorter = Undistorter(src, self.camera)
+        else:
+            self.camera = src.resized(width, height) if (src.width, src.height) != (width, height) else src
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        if self._undistorter is not None:
+            return self._undistorter.remap(image)
+        if image.shape != (self.camera.height, self.camera.width):
+            return cv2.resize(image, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
+        return image
+
+
+def poses_to_trajectory(t_ns: np.ndarray, T: np.ndarray) -> Trajectory:
+    """Trajectory of poses (N, 4, 4) (frame in world) at times (N,) ns."""
+    q = matrix_to_quat(torch.as_tensor(T[:, :3, :3])).numpy() if len(T) else np.zeros((0, 4))
+    return Trajectory(np.asarray(t_ns, dtype=np.int64), T[:, :3, 3].copy(), q)
+
+
+def groundtruth_at(gt: Trajectory, t_ns: np.ndarray) -> tuple[Trajectory, np.ndarray]:
+    """Ground truth interpolated at the times inside its span; returns it and the mask of those times."""
+    inside = (t_ns >= gt.t_ns[0]) & (t_ns <= gt.t_ns[-1])
+    q = t_ns[inside]
+    if len(q) == 0:
+        return poses_to_trajectory(q, np.zeros((0, 4, 4))), inside
+    R, p = interpolate_poses(torch.as_tensor(gt.t_s), torch.as_tensor(gt.matrices()[:, :3, :3]),
+                             torch.as_tensor(gt.position), torch.as_tensor(q * 1e-9))
+    T = np.tile(np.eye(4), (len(q), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R.numpy(), p.numpy()
+    return poses_to_trajectory(q, T), inside
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process, MiB (Linux ``ru_maxrss`` is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WB: np.ndarray,
+              align: str = "sim3") -> dict:
+    """Sim(3)-aligned (or ``align``-aligned) ATE and recall of the posed frames against the ground truth sampled at every input
+    frame time (so frames without a pose count as recall misses)."""
+    from vigs_core.eval import evaluate_trajectory
+
+    ref, _ = groundtruth_at(gt, frame_t_ns)
+    if len(ref) < 3 or len(t_ns) < 3:
+        return {"error": "fewer than 3 frames inside the ground truth's time span or posed"}
+    try:
+        out = evaluate_trajectory(ref, poses_to_trajectory(t_ns, T_WB), align=align, thresholds=(0.05, 0.10),
+                                  max_diff_s=1e-3)
+    except ValueError as err:   # e.g. a platform held still: the alignment is undetermined
+        return {"error": str(err)}
+    return {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in out.items()
+            if isinstance(v, (int, float, np.floating, str))}
+
+
+def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
+                 progress: bool = True, sequence: InputSequence | None = None) -> dict:
+    """Run the dense odometry over a recording and write the outputs (module docstring).
+
+    Args:
+        input_path: EuRoC ASL folder or ROS bag.
+        config: pipeline settings (defaults when None).
+        out_dir: output folder (created); None writes nothing.
+        progress: show a progress bar on stderr.
+        sequence: an already opened input (``input_path`` is then only used in the report).
+    Returns:
+        The report (also written as ``report.json``).
+    """
+    cfg = config or PipelineConfig()
+    torch.set_num_threads(cfg.torch_threads)
+    cv2.setNumThreads(cfg.torch_threads)
+    t_start = time.perf_counter()
+    seq = sequence or open_input(input_path, cfg.image_topic)
+    pre = Preprocessor(seq.camera, cfg.width, cfg.height)
+    cam = pre.camera
+    intr = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy)
+    if cfg.imu.enabled and seq.imu is not None:
+        odo = VisualInertialOdometry(intr, cam.width, cam.height, seq.imu, seq.imu_noise or ImuNoise(), seq.T_BS,
+                                     cfg.odometry, cfg.imu)
+    else:
+        odo = DenseOdometry(intr, cam.width, cam.height, cfg.odometry)
+    mapping = OnlineMapping(cfg.mapping, odo, cam) if cfg.mapping.enabled else None
+    loop = LoopClosureDriver(cfg.loop, odo, mapper=mapping and mapping.mapper,
+                             on_update=mapping and mapping.on_correction) if cfg.loop.enabled else None
+    total = seq.frame_count // cfg.frame_stride
+    if cfg.max_frames is not None:
+        total = min(total, cfg.max_frames)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc=f"vigs run {seq.name}", unit="frame", file=sys.stderr)
+    t_read = t_pre = 0.0
+    n = 0
+    it = seq.frames()
+    t_loop = time.perf_counter()
+    for k in range(total * cfg.frame_stride):
+        t0 = time.perf_counter()
+        try:
+            t_ns, raw = next(it)
+        except StopIteration:
+            break
+        t1 = time.perf_counter()
+        t_read += t1 - t0
+        if k % cfg.frame_stride:
+            continue
+        image = pre(raw)
+        t_pre += time.perf_counter() - t1
+        odo.process(t_ns, image)
+        if mapping is not None:
+            mapping.step(image)
+        if loop is not None:
+            loop.step()
+        n += 1
+        if bar is not None:
+            bar.update(1)
+            if n % 20 == 0:
+                bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
+    if bar is not None:
+        bar.close()
+    if loop is not None:
+        loop.finish()
+    loop_s = time.perf_counter() - t_loop
+    t_ns, T_cw = odo.final_frame_poses()
+    T_WC = np.linalg.inv(T_cw.numpy()) if len(t_ns) else np.zeros((0, 4, 4))
+    T_WB = T_WC @ np.linalg.inv(seq.T_BS)
+    to, T_odo = odo.odometry_poses()
+    T_WB_odo = (np.linalg.inv(T_odo.numpy()) @ np.linalg.inv(seq.T_BS)) if len(to) else np.zeros((0, 4, 4))
+    tk, T_kf = odo.keyframe_poses()
+    T_WB_kf = (np.linalg.inv(T_kf.numpy()) @ np.linalg.inv(seq.T_BS)) if len(tk) else np.zeros((0, 4, 4))
+    timings = {"read": t_read, "preprocess": t_pre, **dict(odo.timings)}
+    report = {
+        "input": str(input_path), "sequence": seq.name,
+        "resolution": [cam.width, cam.height], "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+        "frames": n, "frames_posed": int(len(t_ns)), "keyframes": int(len(tk)), "ba_calls": odo.ba_calls,
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
+        "frames_per_s_excluding_io": round(n / max(loop_s - t_read - t_pre, 1e-9), 2),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+    }
+    if loop is not None:
+        report["loop"] = loop.report()
+    if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
+        mapping.finish()
+        report["mapping"] = mapping.evaluate(t_ns, T_WC)
+    if seq.groundtruth is not None and len(t_ns):
+        frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
+        report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
+        report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
+    velocities = None
+    if isinstance(odo, VisualInertialOdometry):
+        # stage, scale history, biases; metric runs are also scored with SE(3) alignment (no scale correction)
+        report["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
+        tv, velocities = odo.frame_velocities()
+        if odo.vio.metric and seq.groundtruth is not None and len(t_ns):
+            report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
+    report["total_s"] = round(time.perf_counter() - t_start, 3)
+    if out_dir is not None:
+        from vigs_core.io import write_tum
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        write_tum(out / "trajectory.txt", poses_to_trajectory(t_ns, T_WB))
+        write_tum(out / "trajectory_cam.txt", poses_to_trajectory(t_ns, T_WC))
+        write_tum(out / "odometry.txt", poses_to_trajectory(to, T_WB_odo))
+        write_tum(out / "keyframes.txt", poses_to_trajectory(tk, T_WB_kf))
+        if velocities is not None:
+            np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
+                       header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
+        if mapping is not None:
+            mapping.save(out / "map.ply")
+        (out / "report.json").write_text(json.dumps(report, indent=2))
+    return report
