@@ -76,7 +76,7 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
     spinner.start()
     player = BagPlayer(sim_bag.path, ReplayConfig(
         fast=True, remap={"/cam0/image_raw": "/image", "/cam0/camera_info": "/camera_info", "/imu0": "/imu"},
-        wait_for=["/image", "/camera_info", "/imu"], ack_timeout_s=5.0), ros_context)
+        wait_for=["/image", "/camera_info", "/imu"], ack_timeout_s=30.0), ros_context)
     try:
         stats = player.play()
         n_frames = len(sim_bag.frame_t_ns)

@@ -131,7 +131,7 @@ def graph(prefix, vigs_run, tmp_path_factory):
     probe = Probe()
     try:
         cmd = [sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(prefix[0]), "--fast", "--params",
-               str(params), "--linger", "2"]
+               str(params), "--linger", "2", "--settle", "5", "--ack-timeout", "30"]
         proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     finally:
         probe.close()

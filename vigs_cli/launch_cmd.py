@@ -22,6 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
                         help="replay: publish recorded topic FROM as TO (repeatable; default: the bag's first "
                              "Image (or CompressedImage), CameraInfo and Imu topics onto /image, /camera_info, /imu)")
+    parser.add_argument("--settle", type=float, default=1.0,
+                        help="replay: seconds between the graph's inputs being matched and the first message "
+                             "(longer gives late subscribers, e.g. a recorder, time to be discovered)")
+    parser.add_argument("--ack-timeout", type=float, default=5.0,
+                        help="replay with --fast: longest wait for the frontend to acknowledge a frame (s)")
     parser.add_argument("--linger", type=float, default=3.0,
                         help="after the replay ends, seconds for the graph to drain before shutdown")
 
@@ -57,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
             for f in files:
                 topic = load_params_file(f, node).get(key, topic)
             replay_args += ["--wait-for", topic]
-        replay_args += ["--wait-timeout", "60"]
+        replay_args += ["--wait-timeout", "60", "--settle", str(args.settle), "--ack-timeout", str(args.ack_timeout)]
     try:
         config = LaunchConfig(bag=args.bag, params=args.params, composed=args.composed,
                               nodes=args.nodes or list(NODES), replay_args=replay_args, ros_args=ros_args,

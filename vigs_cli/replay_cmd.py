@@ -29,6 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wait-for", action="append", default=[], metavar="TOPIC",
                         help="wait until TOPIC (as published) has a subscriber before starting (repeatable)")
     parser.add_argument("--wait-timeout", type=float, default=10.0, help="longest wait for --wait-for (s)")
+    parser.add_argument("--settle", type=float, default=1.0,
+                        help="seconds to wait after the --wait-for subscribers matched, before the first message")
     parser.add_argument("--start", type=float, default=0.0, help="skip the first START seconds of the bag")
     parser.add_argument("--duration", type=float, default=0.0, help="replay at most DURATION s (0: all)")
 
@@ -45,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         rate=args.rate, fast=args.fast, remap=remap, topics=args.topics, clock=not args.no_clock,
         gate_topic=args.gate_topic, ack_topic=args.ack_topic, ack_timeout_s=args.ack_timeout,
         fast_lookahead_s=args.fast_lookahead,
-        wait_for=args.wait_for, wait_timeout_s=args.wait_timeout, start_offset_s=args.start,
+        wait_for=args.wait_for, wait_timeout_s=args.wait_timeout, settle_s=args.settle, start_offset_s=args.start,
         duration_s=args.duration,
     )
     return run_replay(args.bag, config)
