@@ -12,6 +12,7 @@ fields, which differ:
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 import array
 import importlib
 import sys
@@ -45,24 +46,24 @@ def interface_dirs(package: str) -> list[Path]:
     return [d for d in (repo, installed) if d.is_dir()]
 
 
-class MessageTypes:
+class MessageTypes(ABC):
     """Interface of a message-class provider (see :class:`RclpyTypes`, :class:`RosbagsTypes`)."""
 
+    @abstractmethod
     def new(self, typename: str, **fields: Any):
         """A message of ``typename`` (e.g. ``"sensor_msgs/msg/Image"``) with ``fields`` set."""
-        raise NotImplementedError
 
+    @abstractmethod
     def sequence(self, values, dtype) -> Any:
         """An unbounded numeric sequence field holding ``values`` as ``dtype``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def serialize(self, msg, typename: str) -> bytes:
         """CDR bytes of ``msg`` (what a bag stores and DDS carries)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def deserialize(self, data: bytes, typename: str):
         """The message of ``typename`` encoded in CDR ``data``."""
-        raise NotImplementedError
 
 
 class RclpyTypes(MessageTypes):
