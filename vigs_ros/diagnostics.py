@@ -41,6 +41,15 @@ class StatusReporter:
             n = self.counters[f"warn.{key}"]
             self.node.get_logger().warning(f"{text} [{key}: {n} so far]")
 
+    def decode(self, convert, msg, key: str, what: str):
+        """``convert(msg)``, or ``None`` after a warning of kind ``key`` ("``what`` rejected: ...") when the
+        message is malformed (the adapters raise ``ValueError`` saying what was wrong)."""
+        try:
+            return convert(msg)
+        except ValueError as exc:
+            self.warn(key, f"{what} rejected: {exc}")
+            return None
+
     def set_error(self, key: str, text: str) -> None:
         """An active error (e.g. a required input missing); stays until ``clear_error``."""
         if self._errors.get(key) != text:

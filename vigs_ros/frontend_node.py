@@ -205,10 +205,8 @@ class FrontendNode(VigsNode):
 
     # ------------------------------------------------------------------ inputs
     def on_camera_info(self, msg: CameraInfo) -> None:
-        try:
-            camera = camera_info_to_model(msg)
-        except ValueError as exc:
-            self.status.warn("camera_info", f"camera info rejected: {exc}")
+        camera = self.status.decode(camera_info_to_model, msg, "camera_info", "camera info")
+        if camera is None:
             return
         if self.camera is None:
             self.set_camera(camera)
@@ -317,19 +315,15 @@ class FrontendNode(VigsNode):
         self.frame_done(header)
 
     def on_preintegrated(self, msg: PreintegratedImu) -> None:
-        try:
-            pre = msg_to_preintegration(msg)
-        except ValueError as exc:
-            self.status.warn("preintegration", f"preintegrated IMU rejected: {exc}")
+        pre = self.status.decode(msg_to_preintegration, msg, "preintegration", "preintegrated IMU")
+        if pre is None:
             return
         self.status.count("preintegrations_in")
         self.status.info["last_preintegration"] = f"keyframes {pre.from_id} -> {pre.to_id}, {pre.dt:.3f} s"
 
     def on_pose_update(self, msg: KeyframePoseUpdate) -> None:
-        try:
-            update = msg_to_pose_update(msg)
-        except ValueError as exc:
-            self.status.warn("pose_update", f"keyframe pose update rejected: {exc}")
+        update = self.status.decode(msg_to_pose_update, msg, "pose_update", "keyframe pose update")
+        if update is None:
             return
         if self.engine is None:
             return

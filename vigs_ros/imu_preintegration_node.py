@@ -122,10 +122,8 @@ class ImuPreintegrationNode(VigsNode):
             self.publish_odometry(t_ns)
 
     def on_keyframe_event(self, msg: NavState) -> None:
-        try:
-            event = msg_to_nav_state(msg)
-        except ValueError as exc:
-            self.status.warn("malformed_event", f"malformed keyframe event dropped: {exc}")
+        event = self.status.decode(msg_to_nav_state, msg, "malformed_event", "keyframe event")
+        if event is None:
             return
         self.status.count("keyframe_events")
         prev = self.last_keyframe
@@ -139,10 +137,8 @@ class ImuPreintegrationNode(VigsNode):
             self.serve_pending()
 
     def on_state(self, msg: NavState) -> None:
-        try:
-            s = msg_to_nav_state(msg)
-        except ValueError as exc:
-            self.status.warn("malformed_state", f"malformed state dropped: {exc}")
+        s = self.status.decode(msg_to_nav_state, msg, "malformed_state", "state")
+        if s is None:
             return
         self.status.count("states_in")
         self.state_initialized = s.inertial_initialized

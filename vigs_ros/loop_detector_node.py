@@ -103,10 +103,8 @@ class LoopDetectorNode(VigsNode):
         self.poll()
 
     def on_pose_update(self, msg: KeyframePoseUpdate) -> None:
-        try:
-            update = msg_to_pose_update(msg)
-        except ValueError as exc:
-            self.status.warn("pose_update", f"keyframe pose update rejected: {exc}")
+        update = self.status.decode(msg_to_pose_update, msg, "pose_update", "keyframe pose update")
+        if update is None:
             return
         for kf_id, T in zip(update.ids, update.poses):
             view = self.views.get(int(kf_id))

@@ -75,10 +75,8 @@ class MapperNode(VigsNode):
         self.create_timer(float(self.p["delta_period_s"]), self.publish_delta)
 
     def on_keyframe(self, msg: Keyframe) -> None:
-        try:
-            kf = msg_to_keyframe(msg)
-        except ValueError as exc:
-            self.status.warn("keyframe", f"keyframe rejected: {exc}")
+        kf = self.status.decode(msg_to_keyframe, msg, "keyframe", "keyframe")
+        if kf is None:
             return
         if kf.disparity is None:
             self.status.warn("keyframe", f"keyframe {kf.id} has no disparity: cannot add Gaussians from it")
@@ -95,10 +93,8 @@ class MapperNode(VigsNode):
         self.status.count("keyframes_in")
 
     def on_pose_update(self, msg: KeyframePoseUpdate) -> None:
-        try:
-            update = msg_to_pose_update(msg)
-        except ValueError as exc:
-            self.status.warn("pose_update", f"keyframe pose update rejected: {exc}")
+        update = self.status.decode(msg_to_pose_update, msg, "pose_update", "keyframe pose update")
+        if update is None:
             return
         if self.mapper is None:
             return
