@@ -122,14 +122,19 @@ def check_pose_matrix(T, what: str) -> np.ndarray:
     return T
 
 
+def quaternion_msg(types: MessageTypes, rot) -> object:
+    """``geometry_msgs/Quaternion`` of a (3, 3) rotation matrix."""
+    q = matrix_to_quat_xyzw(rot)
+    return types.new("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])
+
+
 def pose_msg(types: MessageTypes, T) -> object:
     """``geometry_msgs/Pose`` of a (4, 4) rigid transform."""
     T = check_pose_matrix(T, "pose")
-    q = matrix_to_quat_xyzw(T[:3, :3])
     return types.new(
         "geometry_msgs/msg/Pose",
         position=types.new("geometry_msgs/msg/Point", x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-        orientation=types.new("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+        orientation=quaternion_msg(types, T[:3, :3]),
     )
 
 
@@ -144,11 +149,10 @@ def pose_to_matrix(msg, what: str = "Pose") -> np.ndarray:
 def transform_msg(types: MessageTypes, T) -> object:
     """``geometry_msgs/Transform`` of a (4, 4) rigid transform."""
     T = check_pose_matrix(T, "transform")
-    q = matrix_to_quat_xyzw(T[:3, :3])
     return types.new(
         "geometry_msgs/msg/Transform",
         translation=vector3(types, T[:3, 3]),
-        rotation=types.new("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+        rotation=quaternion_msg(types, T[:3, :3]),
     )
 
 

@@ -10,19 +10,7 @@ from vigs_core.camera import CameraModel, Undistorter, inner_pinhole
 
 torch.set_num_threads(1)
 
-EUROC_CAM0 = CameraModel(
-    752, 480, 458.654, 457.296, 367.215, 248.375, "radtan", (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
-)
-TUMVI_CAM0 = CameraModel(
-    512,
-    512,
-    190.97847715128717,
-    190.9733070521226,
-    254.93170605935475,
-    256.8974428996504,
-    "equidistant",
-    (0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182),
-)
+from camera_models import EUROC_CAM0, TUMVI_CAM0  # noqa: E402
 
 
 def test_maps_match_opencv_radtan():
