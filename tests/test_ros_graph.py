@@ -11,6 +11,7 @@ from ros_bags import write_sim_bag
 from ros_helpers import ros_context, spin_until  # noqa: F401  (ros_context is a fixture)
 
 from msg_adapters.odometry import odometry_to_pose
+from msg_adapters.pointcloud import pointcloud2_to_points
 from msg_adapters.tf import tf_message_to_transforms
 from msg_adapters.vigs import msg_to_gaussian_delta, msg_to_keyframe, msg_to_preintegration
 from vigs_ros.qos import latched_qos, reliable_qos
@@ -36,6 +37,7 @@ class Recorder:
 def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry, Path
+    from sensor_msgs.msg import PointCloud2
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
@@ -58,7 +60,8 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
         MapperNode(context=ros_context, parameter_overrides=[P("mapper.iterations", value=2),
                                                               P("mapper.render_scale", value=1.0),
                                                               P("map_path", value=str(tmp_path / "map.ply")),
-                                                              P("delta_period_s", value=0.2)]),
+                                                              P("delta_period_s", value=0.2),
+                                                              P("cloud_period_s", value=0.2)]),
         LoopDetectorNode(context=ros_context),
     ]
     probe = Node("probe", context=ros_context)
@@ -67,7 +70,7 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
         "/tf": (TFMessage, reliable_qos(1000)), "/tf_static": (TFMessage, latched_qos(1)),
         "/vigs/keyframes": (Keyframe, latched_qos(20)), "/vigs/preintegrated_imu": (PreintegratedImu, reliable_qos(100)),
         "/vigs/imu_odometry": (Odometry, reliable_qos(2000)), "/vigs/gaussian_deltas": (GaussianDelta, reliable_qos(100)),
-        "/vigs/frame_done": (Header, reliable_qos(1000)), "/vigs/status": (DiagnosticArray, reliable_qos(1000)),
+        "/vigs/map_cloud": (PointCloud2, latched_qos(1)), "/vigs/frame_done": (Header, reliable_qos(1000)), "/vigs/status": (DiagnosticArray, reliable_qos(1000)),
     })
     executor = MultiThreadedExecutor(num_threads=4, context=ros_context)
     for n in [*nodes, probe]:
@@ -84,6 +87,7 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
         mapper = nodes[2]
         # the IMU node answers keyframe events asynchronously: wait for one preintegration per keyframe pair too
         done = lambda: (len(rec.msgs["/vigs/frame_done"]) >= n_frames and len(rec.msgs["/vigs/gaussian_deltas"]) > 0
+                        and len(rec.msgs["/vigs/map_cloud"]) > 0
                         and mapper.mapper is not None and mapper.mapper.pending() == 0
                         and len(rec.msgs["/vigs/preintegrated_imu"]) >= len(rec.msgs["/vigs/keyframes"]) - 1)  # noqa: E731
         assert spin_until_wall(done, 60.0)
@@ -131,6 +135,12 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
     delta = msg_to_gaussian_delta(rec.msgs["/vigs/gaussian_deltas"][0])
     assert len(delta.added_ids) > 0 and delta.version == 1
     assert (tmp_path / "map.ply").is_file()
+    # ... and as a coloured point cloud in the map frame, in front of the first keyframe's camera
+    t_cloud, points, colours = pointcloud2_to_points(rec.msgs["/vigs/map_cloud"][-1])
+    assert rec.msgs["/vigs/map_cloud"][-1].header.frame_id == "map" and len(points) > 0
+    assert len(points) <= len(mapper.mapper.map) and colours.min() >= 0 and colours.max() <= 1
+    in_cam = (np.linalg.inv(keyframes[0].T_wc) @ np.c_[points, np.ones(len(points))].T)[2]
+    assert np.median(in_cam) > 0
     names = {s.name for m in rec.msgs["/vigs/status"] for s in m.status}
     assert {"/imu_preintegration", "/frontend", "/mapper", "/loop_detector"} <= names
     assert nodes[3].status.counters["keyframes_in"] == len(keyframes)

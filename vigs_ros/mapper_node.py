@@ -13,6 +13,9 @@ Topics (names are parameters; see params/mapper.yaml):
   PGBA updates; anchored Gaussians follow their keyframes.
 * out ``delta_topic`` (vigs_msgs/GaussianDelta, reliable): every ``delta_period_s``, the Gaussians added,
   changed and removed since the previous delta, in activated units (scales in m, opacity in [0, 1]).
+* out ``cloud_topic`` (sensor_msgs/PointCloud2, transient-local): every ``cloud_period_s`` when the map changed,
+  the means of the Gaussians with opacity >= ``cloud_min_opacity``, RGB-coloured, in ``map_frame`` -- for RViz
+  and for consumers that want points rather than Gaussians.
 * service ``~/save_map`` (std_srvs/Trigger): writes ``map_path`` (3DGS PLY + JSON sidecar).
 * out ``status_topic`` (diagnostics). At shutdown the map is saved to ``map_path`` when ``save_on_shutdown``.
 """
@@ -24,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 from vigs_msgs.msg import GaussianDelta, Keyframe, KeyframePoseUpdate
 
+from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import GaussianDeltaData, gaussian_delta_to_msg, msg_to_keyframe, msg_to_pose_update
 from vigs_core.mapping.gaussians import GaussianMap
@@ -50,6 +55,9 @@ PARAMS = [
     ParamSpec("shutdown_drain_s", 10.0, "at shutdown, apply queued keyframes / pose updates for at most this long "
                                         "(s; keep it below the launcher's 30 s shutdown timeout)"),
     ParamSpec("delta_period_s", 1.0, "period of Gaussian delta publication (s)"),
+    ParamSpec("cloud_topic", "/vigs/map_cloud", "output sensor_msgs/PointCloud2 of the Gaussian means (RGB)"),
+    ParamSpec("cloud_period_s", 2.0, "period of the map point cloud (s), sent only when the map changed; <= 0: off"),
+    ParamSpec("cloud_min_opacity", 0.3, "Gaussians below this opacity are left out of the point cloud"),
     ParamSpec("device", "cpu", "torch device of the map (cpu, cuda)"),
     ParamSpec("torch_threads", 1, "torch CPU threads of this process"),
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
@@ -73,6 +81,10 @@ class MapperNode(VigsNode):
             self.create_subscription(KeyframePoseUpdate, topic, self.on_pose_update, reliable_qos(20))
         self.create_service(Trigger, "~/save_map", self.on_save_map)
         self.create_timer(float(self.p["delta_period_s"]), self.publish_delta)
+        self.cloud_version = 0
+        if float(self.p["cloud_period_s"]) > 0:
+            self.pub_cloud = self.create_publisher(PointCloud2, self.p["cloud_topic"], latched_qos(1))
+            self.create_timer(float(self.p["cloud_period_s"]), self.publish_cloud)
 
     def on_keyframe(self, msg: Keyframe) -> None:
         kf = self.status.decode(msg_to_keyframe, msg, "keyframe", "keyframe")
@@ -117,6 +129,18 @@ class MapperNode(VigsNode):
             rows, delta.added.ids.numpy(), delta.changed.ids.numpy(), delta.removed_ids.numpy(), self.version,
             self.get_clock().now().nanoseconds, self.p["map_frame"])))
         self.status.count("deltas_out")
+
+    def publish_cloud(self) -> None:
+        """The map as coloured points, when deltas went out since the last cloud."""
+        if self.mapper is None or self.version == self.cloud_version:
+            return
+        self.cloud_version = self.version
+        g = self.mapper.snapshot().to("cpu")
+        keep = g.opacities() >= float(self.p["cloud_min_opacity"])
+        self.pub_cloud.publish(points_to_pointcloud2(
+            self.types, g.means[keep].numpy(), g.colors[keep].clamp(0, 1).numpy(),
+            self.get_clock().now().nanoseconds, self.p["map_frame"]))
+        self.status.count("clouds_out")
 
     def on_save_map(self, request, response):
         try:
