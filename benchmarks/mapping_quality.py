@@ -29,12 +29,16 @@ SHARED = Path(os.environ.get("VIGS_SHARED", "/work/shared")) / "data" / "euroc"
 
 def _load_hybrid(args) -> tuple[object, list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]]:
     """(camera, [(t_ns, image, depth, T_WC)]) rendered in-process by the simulator."""
-    from vigs_core.io import read_camera_yaml, read_euroc_groundtruth, read_euroc_imu
+    from vigs_core.io import read_camera_yaml, read_euroc_groundtruth, read_euroc_imu, read_tum
     from vigs_core.sim.hybrid import SimConfig, SimSequence, hybrid_source
     from vigs_core.sim.render import RenderConfig
 
     seq_dir = SHARED / args.sequence / "mav0"
-    gt = read_euroc_groundtruth(seq_dir / "state_groundtruth_estimate0" / "data.csv")
+    gt_csv = seq_dir / "state_groundtruth_estimate0" / "data.csv"
+    gt_tum = SHARED / args.sequence / "groundtruth_tum.txt"  # MH_03_medium ships only this
+    if not gt_csv.exists() and not gt_tum.exists():
+        raise FileNotFoundError(f"no ground truth for {args.sequence}: neither {gt_csv} nor {gt_tum}")
+    gt = read_euroc_groundtruth(gt_csv) if gt_csv.exists() else read_tum(gt_tum)
     imu = read_euroc_imu(seq_dir / "imu0" / "data.csv")
     calib = read_camera_yaml(SHARED / "calib" / "cam0_sensor.yaml")
     camera = calib.camera.pinhole().scaled(0.5)
@@ -112,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     config = MapperConfig(iterations=args.iterations, init_stride=args.init_stride, render_scale=1.0, backend="torch")
     mapper = GaussianMapper(config, camera)
     per_kf, cpu_kf = [], []
+    usage0 = resource.getrusage(resource.RUSAGE_SELF)
     for kf_id, i in enumerate(keys):
         t_ns, image, depth, T_WC = frames[i]
         mapper.add_keyframe(kf_id, T_WC, image, depth, t_ns)
@@ -119,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         mapper.step()
         per_kf.append(time.perf_counter() - t)
         cpu_kf.append(time.process_time() - c)
+    usage1 = resource.getrusage(resource.RUSAGE_SELF)
+    user_kf = (usage1.ru_utime - usage0.ru_utime) / len(keys)
+    sys_kf = (usage1.ru_stime - usage0.ru_stime) / len(keys)
     views = [(frames[i][3], frames[i][1]) for i in evals]
     online = mapper.evaluate(views)
     t = time.perf_counter()
@@ -134,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         ("mapping time / keyframe", f"{np.mean(per_kf):.3f} s (median {np.median(per_kf):.3f}, max {max(per_kf):.3f})"),
         ("throughput (wall)", f"{len(keys) / sum(per_kf):.2f} keyframes/s"),
         ("CPU time / keyframe", f"{np.mean(cpu_kf):.3f} s ({len(keys) / sum(cpu_kf):.2f} keyframes per CPU-second)"),
+        ("CPU time / keyframe: user + sys", f"{user_kf:.3f} + {sys_kf:.3f} s"),
         ("init stride", f"{args.init_stride} px"),
         ("gaussians", f"{len(mapper.map)} (added {mapper.stats.added}, pruned {mapper.stats.pruned})"),
         ("map memory", f"{mapper.map.memory_bytes() / 2**20:.2f} MiB"),

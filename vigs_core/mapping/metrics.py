@@ -39,11 +39,14 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, peak: float = 1.0, window: int = 
         raise ValueError(f"ssim needs images of at least {window}x{window} px, got {tuple(a.shape[1:])}")
     x = torch.arange(window, dtype=torch.float64) - (window - 1) / 2.0
     g = torch.exp(-0.5 * (x / sigma) ** 2)
-    g = g / g.sum()
-    kernel = (g[:, None] * g[None, :])[None, None]  # (1, 1, w, w)
+    g = (g / g.sum()).tolist()
 
     def blur(t: torch.Tensor) -> torch.Tensor:
-        return torch.nn.functional.conv2d(t[:, None], kernel)[:, 0]
+        # the 2D Gaussian window is separable: filter rows then columns ('valid' positions only), as
+        # sums of shifted copies (an 11x11 conv2d in float64 goes through a 121x larger im2col buffer)
+        h, w = t.shape[-2] - window + 1, t.shape[-1] - window + 1
+        rows = sum(gk * t[..., k : k + w] for k, gk in enumerate(g))
+        return sum(gk * rows[..., k : k + h, :] for k, gk in enumerate(g))
 
     c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
     mu_a, mu_b = blur(a), blur(b)

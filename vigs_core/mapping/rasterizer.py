@@ -13,11 +13,12 @@ Design (3DGS, Kerbl et al. 2023, Sec. 4 and 6, written for CPU throughput in PyT
 3. **Compositing** over (tiles T, pixels P, Gaussians K) in one custom autograd function
    (:class:`_RasterizeTiles`): the exponent ``power = -(1/2) (x - m)^T Q (x - m)`` is a quadratic form in
    the pixel, written as ``[x^2, xy, y^2, x, y, 1] . coef`` so a single batched matmul evaluates it for
-   all pixels; ``alpha = min(o, 0.99) exp(power)`` (zero below 1/255), ``T_k = prod_{j<k} (1 - alpha_j)``,
+   all pixels; ``alpha = min(o, 0.99) exp(power)`` (zero below 1/255; evaluated as ``exp(power + log o)``,
+   folding the opacity into the constant coefficient), ``T_k = prod_{j<k} (1 - alpha_j)``,
    ``w_k = alpha_k T_k``, outputs ``sum_k w_k f_k`` for features ``f = (r, g, b, z)`` and accumulated
    opacity ``1 - prod_k (1 - alpha_k)``. The backward pass is analytic, which avoids autograd's slow
    cumprod backward and its zero-filled gradients of slices; tiles are processed busiest first in
-   cache-sized chunks, each with its own ``K``.
+   chunks, each gathering only its own ``K`` slots per tile.
 
 The opacity is clamped to 0.99 before the Gaussian falloff (3DGS clamps ``o G`` instead): the two agree
 wherever ``o <= 0.99`` and the clamp then has an exact, cheap gradient.
@@ -80,14 +81,15 @@ class RenderSettings:
         near: Gaussians closer than this camera depth (metres) are culled.
         eps2d: low-pass variance added to every 2D covariance, px^2 (3DGS uses 0.3).
         chunk_pairs: (pixel, Gaussian) pairs composited at once (bounds the working set: about 20 bytes
-            each); tiles beyond it are processed in further chunks.
+            each; larger chunks mean fewer, larger tensor operations); tiles beyond it are processed in
+            further chunks.
     """
 
     tile_size: int = 8
     max_per_tile: int = 96
     near: float = 0.05
     eps2d: float = 0.3
-    chunk_pairs: int = 1 << 18
+    chunk_pairs: int = 1 << 20
 
 
 @dataclass
@@ -167,26 +169,36 @@ def _pixel_monomials(tile_size: int, dtype: torch.dtype, device: torch.device) -
     return torch.stack((x * x, x * y, y * y, x, y, torch.ones_like(x)), -1)
 
 
-def _composite_chunk(coef, opac, feat, mono):
-    """Forward of :class:`_CompositeTiles` on one chunk of tiles: ``(out, acc, saved)``."""
-    alpha = torch.matmul(mono, coef).exp_().mul_(opac[:, None, :])  # (T, P, K)
+def _composite_chunk(coef, feat, mono, keep):
+    """Forward of :class:`_RasterizeTiles` on one chunk of tiles: ``(out, acc, saved)``.
+
+    ``alpha = exp(mono @ coef)`` (the opacity enters as ``log o`` in the constant coefficient, see
+    :func:`_slot_coefficients`), cut below 1/255; ``T_{k+1} = cumprod(1 - alpha)``, ``w_k = T_k - T_{k+1}``.
+    With ``keep`` the backward's inputs ``(w, alpha / (1 - alpha), T_end)`` are returned, else None."""
+    alpha = torch.matmul(mono, coef).exp_()  # (T, P, K)
     torch.nn.functional.threshold_(alpha, ALPHA_MIN, 0.0)
-    one_minus = 1.0 - alpha
+    one_minus = torch.rsub(alpha, 1.0)
     t_incl = torch.cumprod(one_minus, dim=2)  # T_{k+1}
     w = torch.empty_like(alpha)
     torch.sub(1.0, t_incl[:, :, :1], out=w[:, :, :1])
     torch.sub(t_incl[:, :, :-1], t_incl[:, :, 1:], out=w[:, :, 1:])
     # (C, K) @ (K, P) per tile: far faster in BLAS than (P, K) @ (K, C) with C = 4
     out = torch.bmm(feat.transpose(1, 2), w.transpose(1, 2)).transpose(1, 2)
-    return out, 1.0 - t_incl[:, :, -1], (alpha, one_minus, t_incl, w)
+    t_end = t_incl[:, :, -1].clone()
+    if not keep:
+        return out, 1.0 - t_end, None
+    ratio = torch.div(alpha, one_minus, out=one_minus)  # alpha / (1 - alpha), finite: alpha <= 0.99
+    return out, 1.0 - t_end, (w, ratio, t_end)
 
 
 @dataclass(frozen=True)
 class _TileLayout:
     """Where the composited tiles go: ``tiles`` (T,) tile ids (row-major grid of ``n_ty x n_tx`` tiles of
-    ``ts x ts`` px), the image size, and the compositing ``chunks`` (see :func:`_tile_chunks`)."""
+    ``ts x ts`` px), ``index`` (T, K) the table rows of each tile's slots front to back (padded with the
+    transparent dummy row), the image size, and the compositing ``chunks`` (see :func:`_tile_chunks`)."""
 
     tiles: torch.Tensor
+    index: torch.Tensor
     n_tx: int
     n_ty: int
     ts: int
@@ -196,57 +208,73 @@ class _TileLayout:
 
 
 def _slot_coefficients(slots: torch.Tensor, origin: torch.Tensor):
-    """Quadratic-form coefficients (T, 6, K) of the tile slots and the tile-local means ``mx, my``.
+    """Coefficients (T, 6, K) of ``log alpha`` (before the 1/255 cut) of the tile slots, and the
+    tile-local means ``mx, my`` with ``p = a mx + b my``, ``q = b mx + c my``.
 
-    ``power = -(1/2) [dx, dy] Q [dx, dy]^T`` with ``dx = x - mx`` equals ``[x^2, xy, y^2, x, y, 1] . coef``,
-    ``coef = (-a/2, -b, -c/2, a mx + b my, b mx + c my, -(a mx^2 + 2 b mx my + c my^2)/2)``."""
+    ``log o - (1/2) [dx, dy] Q [dx, dy]^T`` with ``dx = x - mx`` equals ``[x^2, xy, y^2, x, y, 1] . coef``,
+    ``coef = (-a/2, -b, -c/2, p, q, log o - (mx p + my q)/2)``. The padding slots (``o = 0``) get
+    ``log o = log 1e-30``: alpha underflows to zero, and gradients stay finite."""
     mx = slots[..., 0] - origin[:, None, 0]
     my = slots[..., 1] - origin[:, None, 1]
     a, b, c = slots[..., 2], slots[..., 3], slots[..., 4]
     p = a * mx + b * my
     q = b * mx + c * my
-    coef = torch.stack((-0.5 * a, -b, -0.5 * c, p, q, -0.5 * (mx * p + my * q)), 1)
+    log_o = slots[..., 5].clamp_min(1e-30).log()
+    coef = torch.stack((-0.5 * a, -b, -0.5 * c, p, q, log_o - 0.5 * (mx * p + my * q)), 1)
     return coef, mx, my, p, q
 
 
 class _RasterizeTiles(torch.autograd.Function):
     """Front-to-back alpha compositing of the K depth-sorted Gaussian slots of T tiles into an image.
 
-    Input ``slots`` (T, K, 6 + F): per slot ``[u, v, a, b, c, o, f_1..f_F]`` (pixel mean, conic, opacity,
-    features, here RGB and camera depth). Per tile, with ``power = mono @ coef`` (P, K) (see
-    :func:`_slot_coefficients`), ``alpha = o exp(power)`` kept where ``>= 1/255`` (``o <= 0.99`` is clamped
-    by the caller, so ``alpha <= 0.99``), ``T_k = prod_{j<k} (1 - alpha_j)``, ``w_k = alpha_k T_k =
-    T_k - T_{k+1}``: features ``out = w @ f`` (P, F) and accumulated opacity ``acc = 1 - prod_k (1 - alpha_k)``.
-    Returns the image ``(features (H, W, F), alpha (H, W))``.
+    Input ``table`` (N + 1, 6 + F): per Gaussian ``[u, v, a, b, c, o, f_1..f_F]`` (pixel mean, conic,
+    opacity, features, here RGB and camera depth), the last row the transparent dummy; tile ``t``'s slots are
+    the rows ``layout.index[t]``. Per tile, with ``power = mono @ coef`` (P, K) (see
+    :func:`_slot_coefficients`; ``power`` includes ``log o``), ``alpha = exp(power)`` kept where
+    ``>= 1/255`` (``o <= 0.99`` is clamped by the caller, so ``alpha <= 0.99``), ``T_k = prod_{j<k}
+    (1 - alpha_j)``, ``w_k = alpha_k T_k = T_k - T_{k+1}``: features ``out = w @ f`` (P, F) and accumulated
+    opacity ``acc = 1 - prod_k (1 - alpha_k)``. Returns the image ``(features (H, W, F), alpha (H, W))``.
 
     Backward (``g = dL/dout``, ``h = dL/dacc``, ``gf_k = g . f_k``, ``S_k = sum_{j>k} w_j gf_j``,
-    ``T_end = prod_k (1 - alpha_k)``): ``dL/dalpha_k = (T_{k+1} gf_k - S_k + h T_end) / (1 - alpha_k)``;
-    ``dL/dpower = alpha dL/dalpha`` (zero where alpha was cut), ``dL/do = sum_p dL/dpower / o``,
-    ``dL/dcoef = mono^T dL/dpower``, ``dL/df = w^T g``, then the chain rule through ``coef`` to
-    ``(u, v, a, b, c)``. Doing all of this in one function keeps autograd from materialising a
-    zero-filled gradient per slice and view, which dominated the run time.
+    ``T_end = prod_k (1 - alpha_k)``): ``dL/dalpha_k = (T_{k+1} gf_k - S_k + h T_end) / (1 - alpha_k)``, so
+    with ``T_{k+1} / (1 - alpha_k) = T_k``, ``r_k = alpha_k / (1 - alpha_k)`` and the inclusive prefix sum
+    ``C_k = sum_{j<=k} w_j gf_j`` (``S_k = C_K - C_k``):
+
+        dL/dpower_k = alpha_k dL/dalpha_k = w_k gf_k + r_k (C_k - (C_K - h T_end))
+
+    (zero where alpha was cut, as ``w = r = 0`` there); ``dL/dcoef = mono^T dL/dpower``, whose constant
+    row is ``dL/dlog o``, so ``dL/do = dL/dcoef_6 / o``; ``dL/df = w^T g``; then the chain rule through
+    ``coef`` to ``(u, v, a, b, c)``, and the slot gradients are summed into the table rows. Doing all of
+    this in one function keeps autograd from materialising a zero-filled gradient per slice and view,
+    which dominated the run time; only ``w``, ``r`` and ``T_end`` are kept for the backward pass (nothing
+    when no gradient is needed).
 
     The tiles are processed in chunks ``(start, end, k)`` (consecutive tiles, of which only the first
-    ``k`` slots are used): chunks of about a megabyte stay in cache and in the allocator's heap, and
-    tiles sorted by load (busiest first) waste little on padding.
+    ``k`` slots are gathered and used); tiles sorted by load (busiest first) waste little on padding.
     """
 
     @staticmethod
-    def forward(ctx, slots, origin, mono, layout):
-        T, P, F = slots.shape[0], mono.shape[0], slots.shape[2] - 6
-        coef, mx, my, p, q = _slot_coefficients(slots, origin)
-        opac, feat = slots[..., 5].contiguous(), slots[..., 6:].contiguous()
-        tile_out = slots.new_zeros(layout.n_ty * layout.n_tx, P, F + 1)
+    def forward(ctx, table, origin, mono, layout):
+        P, C = mono.shape[0], table.shape[1]
+        F = C - 6
+        keep = ctx.needs_input_grad[0]
+        tile_out = table.new_zeros(layout.n_ty * layout.n_tx, P, F + 1)
         saved = []
         for a, b, k in layout.chunks:
-            out, acc, kept = _composite_chunk(coef[a:b, :, :k], opac[a:b, :k], feat[a:b, :k], mono)
-            rows = layout.tiles[a:b]
-            tile_out[rows, :, :F] = out
-            tile_out[rows, :, F] = acc
-            saved.append(kept)
-        ctx.save_for_backward(mono, opac, feat, mx, my, p, q, slots[..., 2:5])
-        ctx.layout = layout
-        ctx.saved_chunks = saved
+            rows = layout.index[a:b, :k].reshape(-1)
+            slots = table.index_select(0, rows).reshape(b - a, k, C)
+            coef = _slot_coefficients(slots, origin[a:b])[0]
+            out, acc, kept = _composite_chunk(coef, slots[..., 6:], mono, keep)
+            tiles = layout.tiles[a:b]
+            tile_out[tiles, :, :F] = out
+            tile_out[tiles, :, F] = acc
+            if keep:
+                saved.append((rows, slots) + kept)
+        if keep:
+            ctx.save_for_backward(mono, origin)
+            ctx.layout = layout
+            ctx.saved_chunks = saved
+            ctx.table_shape = table.shape
         ts, H, W = layout.ts, layout.height, layout.width
         img = tile_out.reshape(layout.n_ty, layout.n_tx, ts, ts, F + 1).permute(0, 2, 1, 3, 4)
         img = img.reshape(layout.n_ty * ts, layout.n_tx * ts, F + 1)[:H, :W]
@@ -254,10 +282,10 @@ class _RasterizeTiles(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_feat_img, g_alpha_img):
-        mono, opac, feat, mx, my, p, q, conic = ctx.saved_tensors
+        mono, origin = ctx.saved_tensors
         layout = ctx.layout
-        ts, F = layout.ts, feat.shape[2]
-        g_img = opac.new_zeros(layout.n_ty * ts, layout.n_tx * ts, F + 1)
+        ts, F = layout.ts, ctx.table_shape[1] - 6
+        g_img = mono.new_zeros(layout.n_ty * ts, layout.n_tx * ts, F + 1)
         if g_feat_img is not None:
             g_img[: layout.height, : layout.width, :F] = g_feat_img
         if g_alpha_img is not None:
@@ -265,27 +293,35 @@ class _RasterizeTiles(torch.autograd.Function):
         g_tiles = g_img.reshape(layout.n_ty, ts, layout.n_tx, ts, F + 1).permute(0, 2, 1, 3, 4)
         g_tiles = g_tiles.reshape(layout.n_ty * layout.n_tx, ts * ts, F + 1)[layout.tiles]
         g_out, g_acc = g_tiles[..., :F].contiguous(), g_tiles[..., F].contiguous()
-        d_coef = opac.new_zeros(opac.shape[0], 6, opac.shape[1])
-        d_slots = opac.new_zeros(opac.shape[0], opac.shape[1], 6 + F)
-        for (a, b, k), (alpha, one_minus, t_incl, w) in zip(layout.chunks, ctx.saved_chunks):
-            g, f = g_out[a:b], feat[a:b, :k]
-            gf = torch.bmm(g, f.transpose(1, 2))  # (T, P, K)
-            wg = w * gf
-            total = wg.sum(2, keepdim=True) - g_acc[a:b, :, None] * t_incl[:, :, -1:]
-            suffix = wg.cumsum_(2)
-            torch.sub(total, suffix, out=suffix)
-            d_power = gf.mul_(t_incl).sub_(suffix).div_(one_minus).mul_(alpha)
-            d_slots[a:b, :k, 5] = d_power.sum(1) / opac[a:b, :k].clamp_min(ALPHA_MIN)
-            d_coef[a:b, :, :k] = torch.matmul(mono.T, d_power)  # (T, 6, K)
-            d_slots[a:b, :k, 6:] = torch.bmm(g.transpose(1, 2), w).transpose(1, 2)
-        d0, d1, d2, d3, d4, d5 = d_coef.unbind(1)
-        a_, b_, c_ = conic.unbind(-1)
-        d_slots[..., 0] = d3 * a_ + d4 * b_ - d5 * p
-        d_slots[..., 1] = d3 * b_ + d4 * c_ - d5 * q
-        d_slots[..., 2] = -0.5 * d0 + d3 * mx - 0.5 * d5 * mx * mx
-        d_slots[..., 3] = -d1 + d3 * my + d4 * mx - d5 * mx * my
-        d_slots[..., 4] = -0.5 * d2 + d4 * my - 0.5 * d5 * my * my
-        return d_slots, None, None, None
+        d_table = mono.new_zeros(ctx.table_shape)
+        for (a, b, k), (rows, slots, w, ratio, t_end) in zip(layout.chunks, ctx.saved_chunks):
+            g = g_out[a:b]
+            wg = torch.bmm(g, slots[..., 6:].transpose(1, 2)).mul_(w)  # w_k gf_k, (T, P, K)
+            prefix = torch.cumsum(wg, 2)  # C_k
+            prefix.sub_(prefix[:, :, -1:] - g_acc[a:b, :, None] * t_end[:, :, None])
+            d_power = wg.addcmul_(ratio, prefix)
+            d0, d1, d2, d3, d4, d5 = torch.matmul(mono.T, d_power).unbind(1)  # dL/dcoef, (T, K) each
+            _, mx, my, p, q = _slot_coefficients(slots, origin[a:b])
+            a_, b_, c_ = slots[..., 2], slots[..., 3], slots[..., 4]
+            d_slots = torch.cat(
+                (
+                    torch.stack(
+                        (
+                            d3 * a_ + d4 * b_ - d5 * p,
+                            d3 * b_ + d4 * c_ - d5 * q,
+                            -0.5 * d0 + d3 * mx - 0.5 * d5 * mx * mx,
+                            -d1 + d3 * my + d4 * mx - d5 * mx * my,
+                            -0.5 * d2 + d4 * my - 0.5 * d5 * my * my,
+                            d5 / slots[..., 5].clamp_min(1e-30),
+                        ),
+                        -1,
+                    ),
+                    torch.bmm(g.transpose(1, 2), w).transpose(1, 2),  # dL/df (T, K, F)
+                ),
+                -1,
+            )
+            d_table.index_add_(0, rows, d_slots.reshape(-1, F + 6))
+        return d_table, None, None, None
 
 
 def _tile_chunks(counts: list[int], pixels: int, budget: int) -> list[tuple[int, int, int]]:
@@ -346,16 +382,20 @@ def bin_gaussians(
     order = torch.argsort(tile * n + rank[gid])
     tile, gid = tile[order], gid[order]
     tiles, per_tile = torch.unique_consecutive(tile, return_counts=True)
+    n_tiles = tiles.numel()
     k = int(min(settings.max_per_tile, int(per_tile.max())))
-    tile_start = torch.cumsum(per_tile, 0) - per_tile
-    row = torch.repeat_interleave(torch.arange(tiles.numel(), device=device), per_tile)
-    pos = torch.arange(tile.numel(), device=device) - tile_start[row]
-    keep = pos < k
-    index = torch.full((tiles.numel(), k), n, dtype=torch.int64, device=device)
-    index[row[keep], pos[keep]] = gid[keep]
     counts = per_tile.clamp_max(k)
     by_load = torch.argsort(counts, descending=True, stable=True)
-    return TileBins(tiles[by_load], index[by_load], counts[by_load])
+    dest = torch.empty_like(by_load)  # output row of each tile
+    dest[by_load] = torch.arange(n_tiles, device=device)
+    tile_start = torch.cumsum(per_tile, 0) - per_tile
+    row = torch.repeat_interleave(torch.arange(n_tiles, device=device), per_tile)
+    pos = torch.arange(tile.numel(), device=device) - tile_start[row]
+    # flat slot of each pair; pairs beyond the k front-most of their tile all go to a sink slot at the end
+    slot = torch.where(pos < k, dest[row] * k + pos, n_tiles * k)
+    index = torch.full((n_tiles * k + 1,), n, dtype=torch.int64, device=device)
+    index[slot] = gid
+    return TileBins(tiles[by_load], index[:-1].view(n_tiles, k), counts[by_load])
 
 
 def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
@@ -402,9 +442,10 @@ class TorchRasterizer:
             )
             front = front.nonzero().squeeze(1)
         mean2d, cov2d, z = project_gaussians(
-            means[front], quats[front], scales[front], T_CW, camera, s.eps2d
-        )
-        opac = opacities[front].clamp(max=ALPHA_MAX)
+            means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front),
+            T_CW, camera, s.eps2d,
+        )  # fmt: skip
+        opac = opacities.index_select(0, front).clamp(max=ALPHA_MAX)
         det = (cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2).clamp_min(1e-12)
         with torch.no_grad():
             reach = 2.0 * torch.log((255.0 * opac.detach()).clamp_min(1.0))  # d^2 where alpha hits 1/255
@@ -421,16 +462,14 @@ class TorchRasterizer:
             # is at u = tx*ts + j_t, so bin on the pixel-centre coordinate shifted by half a pixel.
             bins = bin_gaussians(mean2d.detach()[sel] + 0.5, half[sel], z.detach()[sel], camera, s)
         conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
-        # one (N + 1, 10) table [mean2d, conic, opacity, colour, z] gathered per tile slot in one go
-        table = torch.cat((mean2d, conic, opac[:, None], colors[front], z[:, None]), -1)
+        # one (N + 1, 10) table [mean2d, conic, opacity, colour, z]; the compositing gathers its tile slots
+        table = torch.cat((mean2d, conic, opac[:, None], colors.index_select(0, front), z[:, None]), -1)
         table = _append_zero_row(table.index_select(0, sel))
 
-        T = bins.tiles.numel()
-        slots = table.index_select(0, bins.index.reshape(-1)).reshape(T, bins.index.shape[1], table.shape[1])
         origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
         chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
-        layout = _TileLayout(bins.tiles, n_tx, n_ty, ts, camera.width, camera.height, chunks)
-        feats, alpha = _RasterizeTiles.apply(slots, origin, _pixel_monomials(ts, dtype, device), layout)
+        layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
+        feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
         return RenderOutput(feats[..., :-1], feats[..., -1], alpha, front[sel])
 
 
