@@ -108,3 +108,46 @@ def test_frame_graph_edges_and_sliding_window():
     assert (3, 4) in g.edges and (4, 3) in g.edges
     with pytest.raises(ValueError):
         g.add_keyframe(2, pf)
+
+
+def _window_problem(hold: bool):
+    """A 4-keyframe window with exact correspondences between all pairs, keyframe 0 at its true pose and
+    depth, the others perturbed; returns the odometry after window BA and the true poses and disparities."""
+    import torch
+
+    from vigs_core.frontend import Correspondences, DenseOdometry, OdometryConfig
+    from vigs_core.frontend.odometry import Keyframe
+    from vigs_core.geometry import se3_exp
+    from vigs_core.solver import Intrinsics, reproject
+
+    intr = Intrinsics(180.0, 180.0, (W - 1) / 2, (H - 1) / 2)
+    cfg = OdometryConfig(graph=FrameGraphConfig(window=4, fixed=1, temporal_radius=3), hold_fixed_disparity=hold)
+    odo = DenseOdometry(intr, W, H, cfg)
+    g = torch.Generator().manual_seed(3)
+    P = odo.coords.shape[0]
+    poses = torch.stack([se3_exp(torch.tensor([0.1 * k, 0.02 * k, 0.01 * k, 0.01 * k, -0.02 * k, 0.0],
+                                              dtype=torch.float64)) for k in range(4)])
+    disps = 1.0 / (2.0 + 1.5 * torch.rand(4, P, generator=g, dtype=torch.float64))
+    image = np.zeros((H, W), np.uint8)
+    for k in range(4):
+        xi = 0.01 * torch.randn(6, generator=g, dtype=torch.float64) * (k > 0)
+        d = disps[k] * (1.0 + 0.05 * torch.randn(P, generator=g, dtype=torch.float64) * (k > 0))
+        odo.keyframes[k] = Keyframe(k, k, image, se3_exp(xi) @ poses[k], d)
+        new, _ = odo.graph.add_keyframe(k, lambda i, j: float("inf"))
+        for i, j in new:
+            proj = reproject(poses[i:i + 1], poses[j:j + 1], disps[i:i + 1], odo.coords, intr)
+            odo.edges[(i, j)] = Correspondences(proj.uv[0].numpy(), proj.valid[0].numpy().astype(np.float32), 0.0)
+    odo._ba(40)
+    return odo, poses, disps
+
+
+def test_window_ba_holds_the_fixed_keyframe_depth_as_scale_gauge():
+    import torch
+
+    odo, poses, disps = _window_problem(hold=True)
+    assert torch.equal(odo.keyframes[0].disp, disps[0])
+    for k in range(4):   # fixed pose + fixed depth: the monocular scale is pinned, the solution is unique
+        assert (odo.keyframes[k].pose - poses[k]).abs().max() < 1e-6
+        assert (odo.keyframes[k].disp - disps[k]).abs().max() < 1e-6
+    free, _, _ = _window_problem(hold=False)   # only the pose fixed: the depth of keyframe 0 moves too
+    assert not torch.equal(free.keyframes[0].disp, disps[0])

@@ -8,10 +8,13 @@ whose predicted mean flow to it (geometric warp with the current poses and depth
 (flow-based co-visibility).
 
 Keyframes leaving the window are FIXED, not marginalised: their poses and disparities are frozen at their last
-estimate and their edges are dropped. Inside the window the ``fixed`` oldest keyframes are held constant, pose
-and disparities, as the gauge (6 DoF plus the monocular scale through the fixed depth map). Fixing discards the information the old edges
-carried (no prior is kept), so the window drifts like visual odometry; marginalisation would keep it as a
-dense prior at the cost of fill-in and of linearisation errors that cannot be undone.
+estimate and their edges are dropped. Inside the window the ``fixed`` oldest keyframes are held constant as the
+gauge: their poses fix 6 DoF; with :attr:`vigs_core.frontend.odometry.OdometryConfig.hold_fixed_disparity` their
+disparities are held too and the depth map pins the monocular scale, otherwise (the default) the scale is a
+free direction of BA that only the LM damping holds (see that option for the measured effect). Fixing discards
+the information the old edges carried (no prior is kept), so the window drifts like visual odometry;
+marginalisation would keep it as a dense prior at the cost of fill-in (eliminating a keyframe's P disparities
+couples all its neighbours' poses) and of linearisation errors that cannot be undone once the prior is formed.
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ from typing import Callable
 class FrameGraphConfig:
     """Args:
         window: keyframes optimised together.
-        fixed: oldest window keyframes held constant, pose and disparities (1 fixes pose and scale gauge).
+        fixed: oldest window keyframes whose poses are held constant (and disparities, with
+            ``OdometryConfig.hold_fixed_disparity``).
         temporal_radius: edges from a new keyframe to this many previous keyframes.
         covis_max_flow_px: co-visibility edge when the predicted mean flow is below this, input pixels.
         covis_max_edges: at most this many co-visibility edges (pairs) per new keyframe.

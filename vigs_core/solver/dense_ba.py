@@ -10,7 +10,8 @@ accepts the step only if the total cost decreases.
 Gauge: the poses flagged ``fixed`` are held; a monocular problem needs at least one fixed pose (rotation and
 translation gauge); its scale gauge is fixed by a second fixed pose, by holding the disparities of a fixed
 keyframe (``fixed_disparity``), or left to the LM damping. Two fixed poses with a tiny or noisy baseline pin
-a wrong scale ratio and pull the map's scale away; the frontend therefore fixes one keyframe with its depth.
+a wrong scale ratio and pull the map's scale away; the frontend fixes one keyframe, with its depth when
+``OdometryConfig.hold_fixed_disparity`` is set.
 """
 from __future__ import annotations
 

@@ -11,6 +11,12 @@ Outputs in the output folder:
 * ``report.json``: counts, seconds per stage, frames/s, peak memory, accuracy (Sim(3)-aligned ATE and
   recall against the ground truth sampled at the frame times).
 
+A run that is not metric (vision only, or the IMU never initialised) has an arbitrary scale s, but
+``T_WB = T_WC inv(T_BS)`` applies the metric camera-IMU lever arm: the body positions are off by
+``R_WC (s - 1) t_CB``, a rotating error no Sim(3) alignment removes. Such runs are therefore scored on camera
+poses against the ground-truth camera poses ``T_WB_gt T_BS`` (``accuracy.frame`` says which frame was scored);
+evaluate their ``trajectory_cam.txt`` rather than ``trajectory.txt``.
+
 The world frame is the first camera's at an arbitrary monocular scale (hence the Sim(3) alignment). With IMU data
 and ``imu.enabled`` the odometry is visual-inertial (:mod:`vigs_core.vio`): once the IMU is initialised the world
 is metric and gravity-aligned, ``velocity.txt`` holds every posed frame's body velocity (m/s) and report.json
@@ -93,22 +99,28 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WB: np.ndarray,
-              align: str = "sim3") -> dict:
-    """Sim(3)-aligned (or ``align``-aligned) ATE and recall of the posed frames against the ground truth sampled at every input
-    frame time (so frames without a pose count as recall misses)."""
+def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np.ndarray,
+              align: str = "sim3", T_BX: np.ndarray | None = None) -> dict:
+    """Sim(3)-aligned (or ``align``-aligned) ATE and recall of the posed frames against the ground truth sampled at
+    every input frame time (so frames without a pose count as recall misses).
+
+    ``T_WX`` are poses of frame X: the body when ``T_BX`` is None, else the ground-truth body poses are mapped to X
+    by ``T_WB_gt T_BX`` first (``T_BX = T_BS`` scores camera poses)."""
     from vigs_core.eval import evaluate_trajectory
 
     ref, _ = groundtruth_at(gt, frame_t_ns)
     if len(ref) < 3 or len(t_ns) < 3:
         return {"error": "fewer than 3 frames inside the ground truth's time span or posed"}
+    if T_BX is not None:
+        ref = poses_to_trajectory(ref.t_ns, ref.matrices() @ T_BX)
     try:
-        out = evaluate_trajectory(ref, poses_to_trajectory(t_ns, T_WB), align=align, thresholds=(0.05, 0.10),
+        out = evaluate_trajectory(ref, poses_to_trajectory(t_ns, T_WX), align=align, thresholds=(0.05, 0.10),
                                   max_diff_s=1e-3)
     except ValueError as err:   # e.g. a platform held still: the alignment is undetermined
         return {"error": str(err)}
-    return {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in out.items()
-            if isinstance(v, (int, float, np.floating, str))}
+    result = {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in out.items()
+              if isinstance(v, (int, float, np.floating, str))}
+    return {**result, "frame": "body" if T_BX is None else "camera"}
 
 
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
@@ -200,16 +212,22 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
         mapping.finish()
         report["mapping"] = mapping.evaluate(t_ns, T_WC)
+    metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
     if seq.groundtruth is not None and len(t_ns):
         frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
-        report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
-        report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
+        if metric:
+            report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
+            report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
+        else:   # arbitrary scale: score camera poses (module docstring)
+            T_WC_odo = np.linalg.inv(T_odo.numpy()) if len(to) else np.zeros((0, 4, 4))
+            report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WC, T_BX=seq.T_BS)
+            report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WC_odo, T_BX=seq.T_BS)
     velocities = None
     if isinstance(odo, VisualInertialOdometry):
         # stage, scale history, biases; metric runs are also scored with SE(3) alignment (no scale correction)
         report["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
         tv, velocities = odo.frame_velocities()
-        if odo.vio.metric and seq.groundtruth is not None and len(t_ns):
+        if metric and seq.groundtruth is not None and len(t_ns):
             report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
     report["total_s"] = round(time.perf_counter() - t_start, 3)
     if out_dir is not None:
