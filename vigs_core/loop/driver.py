@@ -51,7 +51,7 @@ class LoopClosureDriver:
 
     Args:
         config: loop-closure settings.
-        odometry: the frontend (``keyframes``, ``frames``, ``edges``, ``grid``, ``intr``, ``config.flow``).
+        odometry: the frontend (``keyframes``, ``frames``, ``edges``, ``grid``, ``intr``, ``config.tracking_flow``).
         mapper: optional :class:`~vigs_core.mapping.mapper.GaussianMapper` fed with camera poses ``T_WC``.
         on_update: optional callback ``{kf_id: (T_WC (4, 4), depth scale)}`` called with every applied
             correction (e.g. to publish keyframe pose updates, or to feed a mapper with another pose convention).
@@ -63,7 +63,9 @@ class LoopClosureDriver:
         self.odometry = odometry
         self.mapper = mapper
         self.on_update = on_update
-        estimator = DISFlowEstimator(odometry.grid, odometry.config.flow)   # the worker's own instance
+        # the worker's own instance, with the per-frame tracking settings: loop pairs are verified by a full
+        # two-view solve, which the keyframe edges' finer (about 3x dearer) flow does not make more reliable
+        estimator = DISFlowEstimator(odometry.grid, odometry.config.tracking_flow)
         self.closure = LoopClosure(config, estimator, odometry.intr)
         self.corrections_applied = 0
         self._registered: list[int] = []
