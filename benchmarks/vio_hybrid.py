@@ -11,11 +11,18 @@ against the ground truth at the same stamps:
 * recall@10cm (fraction of fed frames within 10 cm after the SE(3) alignment);
 * frames/s of the odometry alone (rendering excluded), and the stage / estimated scale / final biases.
 
+* CPU seconds of the run (``time.process_time``) and the 1-minute load average at its end (timings on the
+  shared 2-core machine are only comparable with both).
+
 Rows: every sequence at each of ``--strides`` (default 1 and 10) with the full system; with ``--ablations``
 also the rows of VIGS-SLAM Table 6 (:data:`vigs_core.vio.config.ABLATIONS`) at stride 1.
 
+With ``--asl ROOT`` the frames come from already rendered EuRoC ASL folders ``ROOT/<sequence>`` (``vigs sim
+--euroc`` output: images, the IMU slice, ``groundtruth_tum.txt``), undistorted and resized by the pipeline's
+:class:`~vigs_core.system.pipeline.Preprocessor` exactly as ``vigs run`` does, instead of rendering here.
+
     vigs bench vio_hybrid [--sequences V1_01_easy V2_01_easy MH_03_medium] [--duration 30] [--strides 1 10]
-                          [--ablations] [--json OUT]
+                          [--ablations] [--asl ROOT] [--json OUT]
 """
 from __future__ import annotations
 
@@ -45,7 +52,7 @@ def _sequence_inputs(name: str):
 def render_hybrid(name: str, duration_s: float | None, width: int, cache: Path):
     """Frames of the hybrid sequence: dict with stamps (N,), images (N, H, W) uint8, T_WB (N, 4, 4) ground truth
     at the stamps, the simulator's IMU slice, camera and T_BS. Cached as npz."""
-    from vigs_core.io import read_camera_yaml
+    from vigs_core.io import read_camera_yaml, read_imu_yaml
     from vigs_core.sim.hybrid import SimConfig, SimSequence, hybrid_source
 
     gt, imu = _sequence_inputs(name)
@@ -71,28 +78,52 @@ def render_hybrid(name: str, duration_s: float | None, width: int, cache: Path):
     T_WC = sim.camera_poses(stamps)
     T_WB = T_WC @ np.linalg.inv(calib.T_BS)
     return {"stamps": stamps, "images": images, "T_WB": T_WB, "imu": sim.imu, "camera": camera,
-            "T_BS": calib.T_BS}
+            "T_BS": calib.T_BS, "noise": read_imu_yaml(SHARED / "calib" / "imu0_sensor.yaml")}
+
+
+def load_asl(root: Path, duration_s: float | None, width: int, height: int) -> dict:
+    """Frames of an already rendered ASL folder (module docstring), in the same dict as :func:`render_hybrid`;
+    ground truth interpolated at the frame stamps (frames outside its span are dropped)."""
+    from vigs_core.system.pipeline import Preprocessor, groundtruth_at
+    from vigs_core.system.sources import open_euroc
+
+    seq = open_euroc(root)
+    if seq.groundtruth is None or seq.imu is None:
+        raise ValueError(f"{root}: an ASL folder with ground truth and IMU is needed")
+    pre = Preprocessor(seq.camera, width, height)
+    t_end = None
+    stamps, images = [], []
+    for t_ns, raw in seq.frames():
+        t_end = t_ns + int(duration_s * 1e9) if t_end is None and duration_s is not None else t_end
+        if t_end is not None and t_ns > t_end:
+            break
+        stamps.append(t_ns)
+        images.append(pre(raw))
+    stamps = np.array(stamps, dtype=np.int64)
+    gt, inside = groundtruth_at(seq.groundtruth, stamps)
+    if not inside.any():
+        raise ValueError(f"{root}: no frame lies inside the ground truth's time span")
+    return {"stamps": stamps[inside], "images": np.stack(images)[inside], "T_WB": gt.matrices(), "imu": seq.imu,
+            "camera": pre.camera, "T_BS": seq.T_BS, "noise": seq.imu_noise}
 
 
 def run_vio(seq: dict, stride: int, overrides: dict) -> dict:
     """Run the VI odometry on every ``stride``-th frame; returns metrics and the VIO report."""
     from vigs_core.eval import evaluate_trajectory, recall_key
     from vigs_core.geometry import matrix_to_quat, se3_inverse
-    from vigs_core.io import read_imu_yaml
     from vigs_core.solver import Intrinsics
     from vigs_core.types import Trajectory
     from vigs_core.vio.config import VioConfig
     from vigs_core.vio.odometry import VisualInertialOdometry
 
     cam = seq["camera"]
-    noise = read_imu_yaml(SHARED / "calib" / "imu0_sensor.yaml")
     odo = VisualInertialOdometry(Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy), cam.width, cam.height, seq["imu"],
-                                 noise, seq["T_BS"], vio=VioConfig(**overrides))
+                                 seq["noise"], seq["T_BS"], vio=VioConfig(**overrides))
     idx = np.arange(0, len(seq["stamps"]), stride)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for k in idx:
         odo.process(int(seq["stamps"][k]), seq["images"][k])
-    elapsed = time.perf_counter() - t0
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     t_est, T_cw = odo.final_frame_poses()
     T_wb = (se3_inverse(T_cw) @ odo.vio.T_cb).numpy()
     est = Trajectory(t_est, T_wb[:, :3, 3], matrix_to_quat(torch.from_numpy(T_wb[:, :3, :3])).numpy())
@@ -103,18 +134,18 @@ def run_vio(seq: dict, stride: int, overrides: dict) -> dict:
     rep = odo.report()
     return {"frames": int(len(idx)), "posed": int(len(t_est)), "keyframes": len(odo.keyframes),
             "ate_se3": se3["ate_rmse"], "ate_sim3": sim3["ate_rmse"], "scale_error": abs(sim3["scale"] - 1.0),
-            "recall@10cm": se3[recall_key(0.1)], "fps": len(idx) / elapsed, "stage": rep["stage"],
-            "vio": rep}
+            "recall@10cm": se3[recall_key(0.1)], "fps": len(idx) / elapsed, "cpu_s": cpu,
+            "load": os.getloadavg()[0], "stage": rep["stage"], "vio": rep}
 
 
 def _print_table(title: str, rows: list[tuple[str, dict]]) -> None:
     print(f"\n{title}")
     print(f"{'run':<42} {'frames':>6} {'kf':>4} {'ATE se3 [cm]':>12} {'ATE sim3 [cm]':>13} {'scale err':>9} "
-          f"{'rec@10cm':>8} {'fps':>6} {'stage':>16}")
+          f"{'rec@10cm':>8} {'fps':>6} {'CPU s':>7} {'load':>5} {'stage':>16}")
     for name, r in rows:
         print(f"{name:<42} {r['frames']:>6d} {r['keyframes']:>4d} {100 * r['ate_se3']:>12.2f} "
               f"{100 * r['ate_sim3']:>13.2f} {100 * r['scale_error']:>8.2f}% {100 * r['recall@10cm']:>7.1f}% "
-              f"{r['fps']:>6.1f} {r['stage']:>16}")
+              f"{r['fps']:>6.1f} {r['cpu_s']:>7.1f} {r['load']:>5.1f} {r['stage']:>16}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,20 +158,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--strides", type=int, nargs="+", default=[1, 10], help="frame strides to run (IMU kept)")
     p.add_argument("--ablations", action="store_true", help="also the VIGS-SLAM Table 6 ablation rows")
     p.add_argument("--cache", default="/tmp/vigs_vio_hybrid_cache", help="folder of rendered frames")
+    p.add_argument("--asl", help="read already rendered ASL folders ROOT/<sequence> instead of rendering")
+    p.add_argument("--height", type=int, default=240, help="image height (px) with --asl")
     p.add_argument("--json", help="write all results here")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     main_rows, ablation_rows, results = [], [], {}
     for name in args.sequences:
         t0 = time.perf_counter()
-        seq = render_hybrid(name, args.duration, args.width, Path(args.cache))
+        if args.asl:
+            seq = load_asl(Path(args.asl) / name, args.duration, args.width, args.height)
+        else:
+            seq = render_hybrid(name, args.duration, args.width, Path(args.cache))
         print(f"{name}: {len(seq['stamps'])} frames ready in {time.perf_counter() - t0:.1f} s", flush=True)
         for stride in args.strides:
             r = run_vio(seq, stride, {})
             main_rows.append((f"{name} stride {stride}", r))
             results[f"{name}/stride{stride}"] = r
             print(f"  stride {stride}: ATE se3 {100 * r['ate_se3']:.2f} cm, scale err {100 * r['scale_error']:.2f}%, "
-                  f"recall {100 * r['recall@10cm']:.1f}%, {r['fps']:.1f} fps", flush=True)
+                  f"recall {100 * r['recall@10cm']:.1f}%, {r['fps']:.1f} fps ({r['cpu_s']:.1f} CPU s, load "
+                  f"{r['load']:.1f})", flush=True)
         if args.ablations:
             for ab, overrides in ABLATIONS.items():
                 if ab == "full":

@@ -133,3 +133,20 @@ def test_still_start_is_held_at_the_first_pose(room_sequence):
     off = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig(enabled=False)),
                stamps, still, count=30)
     assert len(off.final_frame_poses()[0]) == 0
+
+
+def test_still_start_at_low_frame_rate_does_not_initialise_on_noise(room_sequence):
+    """Frames 0.5 s apart (frame stride 10) from a camera standing still: the keyframe policy's interval
+    (3 s) makes the front end try a two-view geometry on sub-pixel flow, which RANSAC fits; the front end rejects
+    it (median flow below ``init_min_parallax_px``), so the VI odometry's frames stay held at the first pose and
+    no keyframe exists, and the vision-only front end does not initialise either."""
+    stamps, images, imu, _, _ = room_sequence
+    rng = np.random.default_rng(1)
+    still = [np.clip(images[0] + rng.normal(0, 2, images[0].shape), 0, 255).astype(np.uint8) for _ in range(16)]
+    slow = stamps[0] + np.arange(16) * 500_000_000
+    intr = Intrinsics(FX, FX, CX, CY)
+    odo = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig()), slow, still)
+    assert not odo.initialized and len(odo.keyframes) == 0
+    assert odo.report()["held_still_frames"] == 16
+    vo = _run(DenseOdometry(intr, W, H, OdometryConfig()), slow, still)
+    assert not vo.initialized and len(vo.keyframes) == 0

@@ -74,10 +74,10 @@ class OdometryConfig:
         hold_fixed_disparity: the window's fixed keyframes (``graph.fixed``) keep their disparities as well as
             their poses in BA, so their depth maps pin the monocular scale (the gauge, see
             :mod:`vigs_core.frontend.frame_graph`); off, the scale is a free direction of BA that only the LM
-            damping holds. Off by default: on the first 30 s of hybrid V1_01 (vision only) holding lowered
-            the camera ATE from 1.62 to 1.01 cm, but on the first 70 s (``finest_scale=1``) it raised it from
-            4.14 to 4.55 cm, and in visual-inertial mode it tilted the gravity alignment of the synthetic room
-            test (tests/test_vio_odometry.py) past its 1e-3 bound.
+            damping holds. On by default: on the whole hybrid V1_01 (vision only) holding lowered the camera
+            ATE from 6.91 to 4.15 cm (first 30 s: 1.62 to 1.01 cm; but on the first 70 s with ``finest_scale=1``
+            it raised it from 4.14 to 4.55 cm). The visual-inertial odometry leaves them free (the IMU fixes the
+            scale; :meth:`vigs_core.vio.odometry.VisualInertialOdometry._holds_scale_gauge`).
     """
 
     grid_stride: int = 8
@@ -94,7 +94,7 @@ class OdometryConfig:
     tracking_iterations: int = 3
     min_confidence: float = 0.05
     solver_dtype: str = "float32"
-    hold_fixed_disparity: bool = False
+    hold_fixed_disparity: bool = True
 
     def __post_init__(self) -> None:
         if self.solver_dtype not in ("float32", "float64"):
@@ -295,12 +295,19 @@ class DenseOdometry:
 
     def _two_view(self, corr: Correspondences) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Essential matrix from the first frame to the latest candidate: pose ``T_10`` (4, 4) with unit
-        translation and first-frame disparities (P,), or None without enough inliers or parallax."""
+        translation and first-frame disparities (P,), or None without enough inliers or parallax.
+
+        The median flow of the confident correspondences must reach ``init_min_parallax_px`` before any fit:
+        translational parallax cannot exceed the flow, and from a camera standing still (sub-pixel flow noise,
+        e.g. a still start seen at 2 Hz) RANSAC returns a geometry fitted to noise (hybrid V1_01 at frame stride
+        10: a rotation 180 deg off, ATE 119 cm)."""
         cfg, intr = self.config, self.intr
         good = corr.weight > 0.5
         if good.sum() < 30:
             return None
         c = self.coords.numpy()
+        if np.median(np.linalg.norm(corr.target[good] - c[good], axis=-1)) < cfg.init_min_parallax_px:
+            return None
         x0 = np.stack(((c[:, 0] - intr.cx) / intr.fx, (c[:, 1] - intr.cy) / intr.fy), -1)
         x1 = np.stack(((corr.target[:, 0] - intr.cx) / intr.fx, (corr.target[:, 1] - intr.cy) / intr.fy), -1)
         E, mask = cv2.findEssentialMat(x0[good], x1[good], focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC,
@@ -399,7 +406,7 @@ class DenseOdometry:
         mask = torch.tensor([k in fixed_ids for k in ids])
         cfg = BAConfig(**{**self.config.ba.__dict__, "iterations": iterations})
         extra, extra_state = self._additional_terms(ids, poses)
-        hold = mask if (fixed is None and self.config.hold_fixed_disparity) else None
+        hold = mask if (fixed is None and self._holds_scale_gauge()) else None
         res = bundle_adjust(poses, disps, EdgeSet(ii, jj, target, weight), self.coords, self.intr, mask, cfg,
                             extra=extra, extra_state=extra_state, fixed_disparity=hold)
         self._after_ba(ids, res)
@@ -407,6 +414,10 @@ class DenseOdometry:
             self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n], res.disps[n]
         self.ba_calls += 1
         self._toc("ba", t0)
+
+    def _holds_scale_gauge(self) -> bool:
+        """Hook: whether BA holds the fixed keyframes' disparities (``hold_fixed_disparity``)."""
+        return self.config.hold_fixed_disparity
 
     def _additional_terms(self, ids: list[int], poses: torch.Tensor):
         """Hook: extra BA terms ``(AdditionalTerms, state)`` over the window ``ids`` with poses (n, 4, 4), e.g. the

@@ -38,7 +38,13 @@ class VioConfig:
             the previous keyframe's pose (paper: 1e-4; units mixed rad^2, (m/s)^2, m^2 as in the paper).
         gravity: gravity magnitude, m/s^2.
         inertial_weight: multiplies the inertial information matrices relative to the visual terms (whose
-            residuals are in pixels with unit weight per confidence).
+            residuals are in pixels with unit weight per confidence). 0.03 amounts to noise densities 5.8x the
+            datasheet's, which understate the vibrating EuRoC platform's noise 4-9x (``vigs imu-check``).
+            First 30 s of hybrid V1_01 / V2_01 / MH_03, SE(3) ATE: weight 1 gave 1.8 / 4.5 / 8.4 cm at frame
+            stride 1 and 1.8 / 5.1 / 6.3 cm (MH_03 recall@10cm 90%) at stride 10; 0.1 gave 1.4 / 3.5 / 6.6 and
+            2.5 / 5.2 / 5.2 cm; with the later front-end defaults (edge flow at full resolution) 0.1 gave
+            MH_03 7.5 cm at stride 1 and 2.3 / 5.1 / 6.6 cm (MH_03 recall 87%) at stride 10, 0.03 gave MH_03
+            6.7 cm and 2.6 / 5.8 / 5.5 cm (recall 95%).
         bias_prior_gyro_std: zero-mean prior on each gyroscope bias state, rad/s (keeps unobservable directions
             bounded).
         bias_prior_acc_std: zero-mean prior on each accelerometer bias state, m/s^2.
@@ -48,6 +54,9 @@ class VioConfig:
         max_init_log_scale_std: the inertial-only stage is accepted when the standard deviation of its log-scale
             is below this; otherwise it is retried at the next keyframe.
         max_init_gravity_std_deg: same for the gravity direction, degrees.
+        init_bias_random_walk: the inertial-only stage estimates one bias per keyframe tied by the random walk
+            (:class:`~vigs_core.imu.inertial_init.InertialInitConfig` ``bias_random_walk``) instead of one
+            bias for its window.
         scheme: preintegration scheme (see :mod:`vigs_core.imu.preintegration`).
         metric_fixed_keyframes: once the map is metric, this many oldest window keyframes are held fixed in BA
             (1: rotation and position gauge only, the IMU observes the scale; 0 keeps the frame graph's count).
@@ -68,13 +77,14 @@ class VioConfig:
     inertial_init_keyframes: int = 20
     keyframe_init_max_cov_trace: float = 1e-4
     gravity: float = 9.81
-    inertial_weight: float = 1.0
+    inertial_weight: float = 0.03
     bias_prior_gyro_std: float = 0.1
     bias_prior_acc_std: float = 0.5
     bias_from_inertial_init: bool = True
     relinearize_bias_threshold: float = 0.01
     max_init_log_scale_std: float = 0.02
     max_init_gravity_std_deg: float = 2.0
+    init_bias_random_walk: bool = True
     scheme: str = "closed_form"
     metric_fixed_keyframes: int = 1
     anchor_velocity_std: float = 0.01

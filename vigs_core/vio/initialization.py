@@ -141,7 +141,8 @@ class StagedInitializer:
     def inertial_config(self) -> InertialInitConfig:
         c = self.config
         return InertialInitConfig(gravity=c.gravity, max_log_scale_std=c.max_init_log_scale_std,
-                                  max_gravity_std_deg=c.max_init_gravity_std_deg, scheme=c.scheme)
+                                  max_gravity_std_deg=c.max_init_gravity_std_deg, scheme=c.scheme,
+                                  bias_random_walk=c.init_bias_random_walk)
 
     def on_keyframe(self, stamps_ns: np.ndarray, T_cw: torch.Tensor) -> InitOutcome | None:
         """Advance the stage machine with all keyframes so far (stamps (K,), world->camera poses (K, 4, 4)).
