@@ -115,10 +115,11 @@ except KeyboardInterrupt:
 
 def test_supervisor_forwards_signals_and_escalates():
     """A SIGINT to the launcher reaches every child as SIGINT; one that ignores it is escalated (SIGTERM)."""
-    sup = Supervisor(shutdown_timeout_s=1.0)
+    # generous timings: on a loaded 2-core machine a child interpreter can take a second to start and answer
+    sup = Supervisor(shutdown_timeout_s=4.0)
     sup.start("polite", [sys.executable, "-c", CHILD])
     sup.start("stubborn", [sys.executable, "-c", CHILD, "ignore"])
-    time.sleep(0.5)
+    time.sleep(1.5)
     threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
     rc = sup.run()
     assert sup.procs["polite"].returncode == 0
