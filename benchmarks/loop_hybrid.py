@@ -73,30 +73,13 @@ def load_asl(root: Path, duration_s: float | None, width: int) -> dict:
     """The same from an already rendered hybrid EuRoC ASL folder (``vigs sim --euroc ... --asl``): images
     undistorted to the inner pinhole camera at ``width`` (as ``vigs run`` does), ground-truth camera poses
     ``T_WC = T_WB T_BS`` interpolated at the frame stamps."""
-    import cv2
-
     from vigs_core.io.euroc_sequence import EurocSequence
-    from vigs_core.system.pipeline import Preprocessor, groundtruth_at
+    from vigs_core.system.pipeline import load_frames
 
-    seq = EurocSequence(root)
-    calib = seq.camera_calibration
-    src = calib.camera
-    pre = Preprocessor(src, width, round(src.height * width / src.width))
-    stamps = seq.frame_t_ns
-    if duration_s is not None:
-        stamps = stamps[stamps <= stamps[0] + int(duration_s * 1e9)]
-    gt, inside = groundtruth_at(seq.groundtruth, stamps)
-    if not inside.all():
-        raise ValueError(f"{root}: {int((~inside).sum())} frames lie outside the ground truth's time span")
-    images = []
-    for path in seq.frame_paths[:len(stamps)]:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise OSError(f"cannot read image {path}")
-        images.append(pre(image))
-    T_WC = gt.matrices() @ calib.T_BS
-    return {"stamps": stamps, "images": np.stack(images), "T_WC": T_WC, "camera": pre.camera, "imu": seq.imu,
-            "imu_noise": seq.imu_noise, "T_BS": calib.T_BS}
+    src = EurocSequence(root).camera_calibration.camera
+    f = load_frames(root, width, round(src.height * width / src.width), duration_s)
+    return {"stamps": f.t_ns, "images": f.images, "T_WC": f.T_WB @ f.sequence.T_BS, "camera": f.camera,
+            "imu": f.sequence.imu, "imu_noise": f.sequence.imu_noise, "T_BS": f.sequence.T_BS}
 
 
 def palindrome(seq: dict) -> dict:

@@ -84,27 +84,13 @@ def render_hybrid(name: str, duration_s: float | None, width: int, cache: Path):
 def load_asl(root: Path, duration_s: float | None, width: int, height: int) -> dict:
     """Frames of an already rendered ASL folder (module docstring), in the same dict as :func:`render_hybrid`;
     ground truth interpolated at the frame stamps (frames outside its span are dropped)."""
-    from vigs_core.system.pipeline import Preprocessor, groundtruth_at
-    from vigs_core.system.sources import open_euroc
+    from vigs_core.system.pipeline import load_frames
 
-    seq = open_euroc(root)
-    if seq.groundtruth is None or seq.imu is None:
-        raise ValueError(f"{root}: an ASL folder with ground truth and IMU is needed")
-    pre = Preprocessor(seq.camera, width, height)
-    t_end = None
-    stamps, images = [], []
-    for t_ns, raw in seq.frames():
-        t_end = t_ns + int(duration_s * 1e9) if t_end is None and duration_s is not None else t_end
-        if t_end is not None and t_ns > t_end:
-            break
-        stamps.append(t_ns)
-        images.append(pre(raw))
-    stamps = np.array(stamps, dtype=np.int64)
-    gt, inside = groundtruth_at(seq.groundtruth, stamps)
-    if not inside.any():
-        raise ValueError(f"{root}: no frame lies inside the ground truth's time span")
-    return {"stamps": stamps[inside], "images": np.stack(images)[inside], "T_WB": gt.matrices(), "imu": seq.imu,
-            "camera": pre.camera, "T_BS": seq.T_BS, "noise": seq.imu_noise}
+    f = load_frames(root, width, height, duration_s)
+    if f.sequence.imu is None:
+        raise ValueError(f"{root}: an ASL folder with IMU data is needed")
+    return {"stamps": f.t_ns, "images": f.images, "T_WB": f.T_WB, "imu": f.sequence.imu, "camera": f.camera,
+            "T_BS": f.sequence.T_BS, "noise": f.sequence.imu_noise}
 
 
 def run_vio(seq: dict, stride: int, overrides: dict) -> dict:

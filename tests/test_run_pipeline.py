@@ -170,3 +170,15 @@ def test_unscaled_runs_are_scored_on_camera_poses():
     assert cam["frame"] == "camera" and cam["ate_rmse"] < 1e-9 and cam["scale"] == pytest.approx(1 / 0.3)
     body = _accuracy(gt, t_ns, t_ns, est_WC @ np.linalg.inv(lever))
     assert body["frame"] == "body" and body["ate_rmse"] > 0.01
+
+
+def test_load_frames_reads_a_whole_input_at_the_processing_size(sequence, tmp_path):
+    from vigs_core.system.pipeline import load_frames
+
+    t_ns, images, T_WC = sequence
+    write_asl(tmp_path / "seq", t_ns, images, T_WC)
+    f = load_frames(tmp_path / "seq", W // 2, H // 2, duration_s=1.0)
+    assert f.images.shape == (21, H // 2, W // 2) and f.images.dtype == np.uint8   # 0 .. 1.0 s at 20 Hz
+    np.testing.assert_array_equal(f.t_ns, t_ns[:21])
+    np.testing.assert_allclose(f.T_WB, T_WC[:21] @ np.linalg.inv(T_BS), atol=1e-9)
+    assert (f.camera.width, f.camera.height) == (W // 2, H // 2)

@@ -34,6 +34,7 @@ import json
 import resource
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -92,6 +93,46 @@ def groundtruth_at(gt: Trajectory, t_ns: np.ndarray) -> tuple[Trajectory, np.nda
     T = np.tile(np.eye(4), (len(q), 1, 1))
     T[:, :3, :3], T[:, :3, 3] = R.numpy(), p.numpy()
     return poses_to_trajectory(q, T), inside
+
+
+@dataclass
+class LoadedFrames:
+    """A whole input read into memory at the processing resolution (benchmarks, offline tools).
+
+    Attributes:
+        sequence: the opened input (IMU, its noise, ``T_BS``, ground truth).
+        camera: the pinhole camera of ``images``.
+        t_ns: (N,) stamps of the frames inside the ground truth's time span.
+        images: (N, h, w) uint8 grey images, undistorted and resized as ``vigs run`` does.
+        T_WB: (N, 4, 4) ground-truth body poses interpolated at ``t_ns``.
+    """
+
+    sequence: InputSequence
+    camera: CameraModel
+    t_ns: np.ndarray
+    images: np.ndarray
+    T_WB: np.ndarray
+
+
+def load_frames(path: str | Path, width: int, height: int, duration_s: float | None = None) -> LoadedFrames:
+    """Read the frames of ``path`` (EuRoC ASL folder or bag with ground truth) from the first one for at most
+    ``duration_s`` (None: all), preprocessed to ``width`` x ``height``; frames outside the ground truth's span
+    are dropped."""
+    seq = open_input(path)
+    if seq.groundtruth is None:
+        raise ValueError(f"{path}: an input with ground truth is needed")
+    pre = Preprocessor(seq.camera, width, height)
+    stamps, images = [], []
+    for t_ns, raw in seq.frames():
+        if duration_s is not None and stamps and t_ns > stamps[0] + int(duration_s * 1e9):
+            break
+        stamps.append(t_ns)
+        images.append(pre(raw))
+    t_ns = np.array(stamps, dtype=np.int64)
+    gt, inside = groundtruth_at(seq.groundtruth, t_ns)
+    if not inside.any():
+        raise ValueError(f"{path}: no frame lies inside the ground truth's time span")
+    return LoadedFrames(seq, pre.camera, t_ns[inside], np.stack(images)[inside], gt.matrices())
 
 
 def peak_rss_mb() -> float:
