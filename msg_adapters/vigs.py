@@ -32,7 +32,8 @@ from vigs_core.camera import CameraModel
 @dataclass
 class KeyframeData:
     """A keyframe: ``T_wc`` (4, 4) camera pose in the world, undistorted ``image`` ((H, W) or (H, W, 3)),
-    ``camera`` its pinhole intrinsics, ``disparity`` (h, w) float32 inverse depth (1/m) or None."""
+    ``camera`` its pinhole intrinsics, ``disparity`` (h, w) float32 inverse depth (1/m) or None; ``metric``:
+    pose and disparity are in metres (the visual-inertial odometry is initialised)."""
 
     id: int
     t_ns: int
@@ -43,6 +44,7 @@ class KeyframeData:
     disparity: np.ndarray | None = None
     frame_id: str = "map"
     camera_frame_id: str = "camera"
+    metric: bool = False
 
 
 def keyframe_to_msg(types: MessageTypes, kf: KeyframeData):
@@ -62,6 +64,7 @@ def keyframe_to_msg(types: MessageTypes, kf: KeyframeData):
         header=make_header(types, kf.t_ns, kf.frame_id),
         id=int(kf.id),
         pose=pose_msg(types, kf.T_wc),
+        metric=bool(kf.metric),
         image=numpy_to_image(types, kf.image, kf.encoding, kf.t_ns, kf.camera_frame_id),
         disparity=disparity,
         camera_info=model_to_camera_info(types, kf.camera, kf.t_ns, kf.camera_frame_id),
@@ -91,6 +94,7 @@ def msg_to_keyframe(msg) -> KeyframeData:
         disparity=disparity,
         frame_id=str(msg.header.frame_id),
         camera_frame_id=str(msg.image.header.frame_id),
+        metric=bool(field(msg, "metric", "Keyframe")),
     )
 
 

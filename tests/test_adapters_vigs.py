@@ -67,11 +67,13 @@ def make_keyframe(with_disparity: bool = True) -> KeyframeData:
     )
 
 
-@pytest.mark.parametrize("with_disparity", [True, False])
-def test_keyframe_round_trip(types, with_disparity):
+@pytest.mark.parametrize("with_disparity,metric", [(True, False), (False, True)])
+def test_keyframe_round_trip(types, with_disparity, metric):
     kf = make_keyframe(with_disparity)
+    kf.metric = metric
     back = msg_to_keyframe(cdr_round_trip(types, keyframe_to_msg(types, kf), "vigs_msgs/msg/Keyframe"))
-    assert (back.id, back.t_ns, back.encoding, back.camera) == (kf.id, kf.t_ns, kf.encoding, kf.camera)
+    assert (back.id, back.t_ns, back.encoding, back.camera, back.metric) == (kf.id, kf.t_ns, kf.encoding, kf.camera,
+                                                                              metric)
     np.testing.assert_allclose(back.T_wc, kf.T_wc, atol=1e-12)
     np.testing.assert_array_equal(back.image, kf.image)
     if with_disparity:

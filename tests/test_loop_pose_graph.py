@@ -103,3 +103,27 @@ def test_huber_limits_a_false_loop_edge():
     err_huber = (huber.poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
     assert err_plain > 0.5  # the false edge wrecks the unprotected solution
     assert err_huber < 0.1
+
+
+def test_scale_prior_keeps_metric_nodes_at_their_scale():
+    """Metric keyframes (scale observed by the IMU) with rotation drift only and a loop edge whose scale is 10%
+    off: without the node scale prior the loop's scale spreads into every node; with it the nodes keep scale 1
+    while the loop still removes the rotation drift."""
+    truth = circle_poses(40)
+    poses, i, j, z = odometry_graph(truth, drift_rot=0.01, drift_scale=0.0)
+    li, lj = torch.tensor([39]), torch.tensor([0])
+    wrong_scale = PoseGraph.relative(truth, li, lj) @ sim3_exp(torch.tensor([0, 0, 0, 0, 0, 0, math.log(0.9)], dtype=D))
+    info = torch.eye(7, dtype=D).expand(40, 7, 7).clone()
+    info[-1] *= 100.0
+    args = (poses, torch.cat((i, li)), torch.cat((j, lj)), torch.cat((z, wrong_scale)), info)
+    free = optimize_pose_graph(PoseGraph(*args), PoseGraphConfig(huber_delta=0.0))
+    held = optimize_pose_graph(PoseGraph(*args, scale_information=torch.full((40,), 1e6, dtype=D)),
+                               PoseGraphConfig(huber_delta=0.0))
+    scales_free = torch.exp(sim3_log(free.poses)[:, 6])
+    scales_held = torch.exp(sim3_log(held.poses)[:, 6])
+    assert (scales_free - 1).abs().max() > 0.03
+    assert (scales_held - 1).abs().max() < 1e-3
+    err_before = (poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
+    err_held = (held.poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
+    assert err_held < 0.3 * err_before
+    assert held.final_cost < held.initial_cost

@@ -123,7 +123,7 @@ class FrontendEngine:
             if kf_id not in self._published:
                 disparity = kf.disp.numpy().astype(np.float32).reshape(self.grid_shape)
                 out.new_keyframes.append(KeyframeData(kf_id, kf.t_ns, T_wc, kf.image, "mono8", self.camera,
-                                                      disparity))
+                                                      disparity, metric=metric))
                 out.keyframe_states[kf_id] = self.keyframe_state(kf_id)
             elif _pose_distance(self._published[kf_id], T_wc) > self.pose_update_tolerance:
                 out.updated_keyframes[kf_id] = T_wc

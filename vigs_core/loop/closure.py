@@ -119,13 +119,14 @@ class LoopClosure:
         with self._lock:
             return self._pending_loops > 0
 
-    def start_pgba(self, poses: dict[int, torch.Tensor]) -> bool:
+    def start_pgba(self, poses: dict[int, torch.Tensor], scale_information: float = 0.0) -> bool:
         """Queue PGBA over the whole graph at the current poses ``{id: T_WC (4, 4)}`` when a loop is pending, no
-        PGBA is in flight and no result waits to be polled; True when queued."""
+        PGBA is in flight and no result waits to be polled; True when queued. ``scale_information``: see
+        :meth:`KeyframePoseGraph.build` (metric keyframes)."""
         with self._lock:
             if self._pending_loops == 0 or self._in_flight or self._result is not None:
                 return False
-            graph, ids = self.graph.build(poses, self.units)
+            graph, ids = self.graph.build(poses, self.units, scale_information)
             loops = len(self.graph.loops)
             self._pending_loops = 0
             self._in_flight = True

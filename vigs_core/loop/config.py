@@ -89,8 +89,9 @@ class LoopGraphConfig:
         sigma_translation_m: likewise for translation, map units.
         sigma_log_scale: standard deviation of an odometry edge's log scale (the dense reprojection of one
             direction does not observe it).
-        sigma_metric_log_scale: once the visual-inertial odometry is metric, each new odometry edge also gets
-            a log-scale prior of this standard deviation (the IMU observes scale; ours).
+        sigma_metric_log_scale: once the visual-inertial odometry is metric, every keyframe's log scale gets an
+            absolute prior of this standard deviation in PGBA (the IMU observes the scale at each keyframe, so
+            loops correct drift in position and orientation, not the metric scale; ours).
     """
 
     odometry_neighbours: int = 1

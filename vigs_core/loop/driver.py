@@ -9,9 +9,11 @@ visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1
 2. registers the keyframes created since the last call: their views (image, ``T_WC``, grid depth ``1/d``) and
    an odometry edge to the previous keyframe whose information comes from the frontend's dense correspondences
    of the pair (:func:`~vigs_core.loop.two_view.edge_information`; the configured standard deviations when the
-   frontend has none). Once the visual-inertial odometry is metric, a scale prior ``sigma_metric_log_scale`` is
-   added to each new odometry edge (the IMU observes scale, PGBA should not trade it away);
-3. starts PGBA on the current poses when a loop is pending.
+   frontend has none);
+3. starts PGBA on the current poses when a loop is pending. Once the visual-inertial odometry is metric (the whole
+   map is re-expressed in metres at its initialisation), every keyframe's log scale gets an absolute prior of
+   standard deviation ``sigma_metric_log_scale``: the IMU observes the scale at each keyframe, so a loop
+   corrects position and orientation drift and does not trade the metric scale away.
 
 Detection, the odometry-edge information and PGBA run on the loop-closure worker thread; the tracking thread
 only builds keyframe views (cached for keyframes that left the frontend's window) and applies corrections.
@@ -84,11 +86,11 @@ class LoopClosureDriver:
                 history = [views[i] for i in self._registered]
                 prev = self._registered[-1] if self._registered else None
                 edges = {e: self.odometry.edges[e] for e in ((prev, k), (k, prev)) if e in self.odometry.edges}
-                info = (lambda a=views.get(prev), b=views[k], e=edges, m=self._metric(): self._information(a, b, e, m))
+                info = (lambda a=views.get(prev), b=views[k], e=edges: self._information(a, b, e))
                 self.closure.add_keyframe(views[k], history, info)
                 self._registered.append(k)
         if self.closure.pending:
-            self.closure.start_pgba({k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered})
+            self._start_pgba()
         return result
 
     def finish(self) -> None:
@@ -99,8 +101,13 @@ class LoopClosureDriver:
                 self.apply(result)
             if not self.closure.pending:
                 break
-            self.closure.start_pgba({k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered})
+            self._start_pgba()
         self.closure.close()
+
+    def _start_pgba(self) -> None:
+        poses = {k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered}
+        scale_information = self.config.graph.sigma_metric_log_scale ** -2 if self._metric() else 0.0
+        self.closure.start_pgba(poses, scale_information)
 
     def apply(self, result: PGBAResult) -> dict[int, tuple[torch.Tensor, float]]:
         """Apply PGBA corrections to the odometry (and its inertial states), the mapper and ``on_update``."""
@@ -134,8 +141,7 @@ class LoopClosureDriver:
         vio = getattr(self.odometry, "vio", None)
         return bool(vio is not None and getattr(vio, "metric", False))
 
-    def _information(self, a: KeyframeView | None, b: KeyframeView, edges: dict, metric: bool
-                     ) -> dict[int, torch.Tensor] | None:
+    def _information(self, a: KeyframeView | None, b: KeyframeView, edges: dict) -> dict[int, torch.Tensor] | None:
         """Information of the odometry edge (a, b) from the frontend's correspondences of the pair (worker
         thread); None (configured standard deviations) without them."""
         if a is None or (a.id, b.id) not in edges:
@@ -144,9 +150,6 @@ class LoopClosureDriver:
         back = _correspondences(edges[(b.id, a.id)]) if (b.id, a.id) in edges else None
         info = edge_information(Z, a.depth, b.depth, _correspondences(edges[(a.id, b.id)]), back, self.odometry.grid,
                                 self.odometry.intr, self.config.verification)
-        if metric:
-            info = info.clone()
-            info[6, 6] += self.config.graph.sigma_metric_log_scale ** -2
         return {a.id: info}
 
     def report(self) -> dict:

@@ -6,7 +6,9 @@ with a 7x7 information matrix ``Lambda_ij`` (tangent order ``(rho, phi, sigma)``
 
     E = sum_ij  rho_h( r_ij^T Lambda_ij r_ij ),   r_ij = Log(Z_ij^{-1} S_i^{-1} S_j)   (in R^7)
 
-with an optional Huber ``rho_h`` on loop edges. With left perturbations ``S_k <- Exp(d_k) S_k`` and
+with an optional Huber ``rho_h`` on loop edges, plus optional absolute priors on node scales,
+``sum_k lambda_k (log s_k)^2`` (``s_k`` the scale of ``S_k``: nodes whose scale is observed, e.g. by an IMU, and
+so should not absorb a loop's scale; ``d log s_k / d d_k = e_7``). With left perturbations ``S_k <- Exp(d_k) S_k`` and
 ``E_ij = Z_ij^{-1} S_i^{-1} S_j``:
 
     d r_ij / d d_j =  J_l^{-1}(r_ij) Ad((S_i Z_ij)^{-1}),     d r_ij / d d_i = -d r_ij / d d_j
@@ -56,6 +58,8 @@ class PoseGraph:
         information: (E, 7, 7) information matrices ``Lambda_ij``.
         robust: (E,) bool, edges whose cost gets the Huber kernel (loop edges).
         fixed: node indices held constant (at least one, to fix the gauge).
+        scale_information: (N,) information ``lambda_k`` of the prior ``log s_k = 0`` on each node's scale
+            (0: no prior; None: none at all).
     """
 
     poses: torch.Tensor
@@ -65,6 +69,7 @@ class PoseGraph:
     information: torch.Tensor
     robust: torch.Tensor | None = None
     fixed: list[int] = field(default_factory=lambda: [0])
+    scale_information: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n, e = self.poses.shape[0], self.edges_i.shape[0]
@@ -83,6 +88,8 @@ class PoseGraph:
             raise ValueError("at least one node must be fixed to remove the Sim(3) gauge freedom")
         if self.robust is None:
             self.robust = torch.zeros(e, dtype=torch.bool)
+        if self.scale_information is not None and tuple(self.scale_information.shape) != (n,):
+            raise ValueError(f"scale_information must have shape {(n,)}, got {tuple(self.scale_information.shape)}")
 
     @staticmethod
     def relative(poses: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
@@ -104,6 +111,17 @@ class PoseGraphResult:
 def _residuals(graph: PoseGraph, poses: torch.Tensor) -> torch.Tensor:
     err = sim3_inverse(graph.measurements) @ PoseGraph.relative(poses, graph.edges_i, graph.edges_j)
     return sim3_log(err)
+
+
+def _log_scales(poses: torch.Tensor) -> torch.Tensor:
+    """``log s`` of similarities (N, 4, 4): ``s R`` has columns of length ``s``."""
+    return torch.linalg.norm(poses[:, :3, 0], dim=-1).log()
+
+
+def _scale_prior_cost(graph: PoseGraph, poses: torch.Tensor) -> float:
+    if graph.scale_information is None:
+        return 0.0
+    return float((graph.scale_information.to(poses) * _log_scales(poses) ** 2).sum())
 
 
 def _robust_weights(graph: PoseGraph, r: torch.Tensor, huber_delta: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,7 +152,8 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
 
     r = _residuals(graph, poses)
     w, c = _robust_weights(graph, r, config.huber_delta)
-    cost = float(c.sum())
+    cost = float(c.sum()) + _scale_prior_cost(graph, poses)
+    prior_rows = (offset + 6)[free] if graph.scale_information is not None else None
     costs = [cost]
     it = 0
     for it in range(1, config.max_iterations + 1):
@@ -155,6 +174,10 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
                 triplets.append(_block_triplets(offset[idx[a]], offset[idx[bb]], hab))
         if dim == 0:
             break
+        if prior_rows is not None:
+            lam = graph.scale_information.to(poses)[free]
+            b.index_add_(0, prior_rows, lam * _log_scales(poses[free]))
+            triplets.append((prior_rows.numpy(), prior_rows.numpy(), lam.numpy()))
         h = scipy.sparse.coo_matrix(
             (np.concatenate([t[2] for t in triplets]),
              (np.concatenate([t[0] for t in triplets]), np.concatenate([t[1] for t in triplets]))),
@@ -167,7 +190,7 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
             trial[free] = sim3_exp(step.view(-1, 7)) @ poses[free]
             r_trial = _residuals(graph, trial)
             w_trial, c_trial = _robust_weights(graph, r_trial, config.huber_delta)
-            new_cost = float(c_trial.sum())
+            new_cost = float(c_trial.sum()) + _scale_prior_cost(graph, trial)
             if new_cost < cost:
                 poses, r, w = trial, r_trial, w_trial
                 damping = max(damping / 10.0, 1e-12)
