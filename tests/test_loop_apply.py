@@ -153,3 +153,21 @@ def test_loop_edges_follow_the_depth_units_of_applied_corrections():
     X_b = torch.tensor([[0.4, -0.3, 2.0]], dtype=D)
     np.testing.assert_allclose(sim3_act(after.measurements[-1], 2.0 * X_b).numpy(),
                                sim3_act(before.measurements[-1], X_b).numpy(), atol=1e-12)
+
+
+def test_driver_views_follow_keyframes_re_expressed_outside_the_window():
+    """The visual-inertial world alignment replaces every keyframe's pose and disparity, also of keyframes that
+    left the window long ago; loop detection must see them in the new (metric) world, not a stale cache."""
+    odo = small_odometry(4)
+    odo.graph.keyframes = [3]   # only the newest keyframe is still in the window
+    driver = LoopClosureDriver(LoopConfig(asynchronous=False), odo)
+    before = driver._current_views()
+    s = 0.25   # the alignment's scale: world points x -> s x, disparities / s
+    kf = odo.keyframes[0]
+    T_wc = se3_inverse(kf.pose)
+    T_wc[:3, 3] *= s
+    kf.pose, kf.disp = se3_inverse(T_wc), kf.disp / s
+    after = driver._current_views()
+    torch.testing.assert_close(after[0].T_WC[:3, 3], s * before[0].T_WC[:3, 3])
+    torch.testing.assert_close(after[0].depth, before[0].depth * s)
+    assert after[1] is before[1]   # unchanged keyframes keep their cached view

@@ -29,6 +29,7 @@ from vigs_core.frontend import DenseOdometry
 from vigs_core.loop import apply_to_odometry
 from vigs_core.solver import Intrinsics
 from vigs_core.system import PipelineConfig, Preprocessor
+from vigs_core.system.mapping import depth_scale_change
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import VisualInertialOdometry
 from vigs_ros.frames import invert
@@ -47,7 +48,9 @@ class KeyframeState:
 @dataclass
 class FrameOutput:
     """Result of one frame: ``T_wc`` (4, 4) or None while initialising; new keyframes with their inertial
-    states; ``updated_keyframes`` {id: T_wc} of existing keyframes moved by more than the tolerance;
+    states; ``updated_keyframes`` {id: (T_wc, c)} of existing keyframes whose pose moved, or whose depths
+    grew by a factor ``c`` (:func:`vigs_core.system.mapping.depth_scale_change`), by more than the tolerance
+    since they were last published;
     ``realigned``: the world was re-expressed (IMU initialisation); ``inertial_initialized``: the world is
     metric and gravity-aligned; ``rotation_error``: the largest ``max|R^T R - I|`` of the core's poses before
     projection onto SO(3) (a core that loses orthonormality is reported by the node, not hidden)."""
@@ -56,7 +59,7 @@ class FrameOutput:
     T_wc: np.ndarray | None
     new_keyframes: list[KeyframeData] = field(default_factory=list)
     keyframe_states: dict[int, KeyframeState] = field(default_factory=dict)
-    updated_keyframes: dict[int, np.ndarray] = field(default_factory=dict)
+    updated_keyframes: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
     realigned: bool = False
     inertial_initialized: bool = False
     rotation_error: float = 0.0
@@ -98,7 +101,7 @@ class FrontendEngine:
             self.odometry = DenseOdometry(intr, cam.width, cam.height, config.odometry)
         self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
         self.pose_update_tolerance = pose_update_tolerance
-        self._published: dict[int, np.ndarray] = {}
+        self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
         self._metric = False
 
     @property
@@ -117,6 +120,12 @@ class FrontendEngine:
         metric = self.inertial and self.odometry.vio.metric
         out.realigned, out.inertial_initialized = metric and not self._metric, metric
         self._metric = metric
+        self.report_keyframes(out, metric)
+        return out
+
+    def report_keyframes(self, out: FrameOutput, metric: bool) -> None:
+        """Fill ``out.new_keyframes`` (with their states) and ``out.updated_keyframes`` from the core's
+        keyframes against what was published before."""
         for kf_id in sorted(self.odometry.keyframes):
             kf = self.odometry.keyframes[kf_id]
             T_wc = self._rigid_inverse(kf.pose.numpy(), out)
@@ -125,10 +134,13 @@ class FrontendEngine:
                 out.new_keyframes.append(KeyframeData(kf_id, kf.t_ns, T_wc, kf.image, "mono8", self.camera,
                                                       disparity, metric=metric))
                 out.keyframe_states[kf_id] = self.keyframe_state(kf_id)
-            elif _pose_distance(self._published[kf_id], T_wc) > self.pose_update_tolerance:
-                out.updated_keyframes[kf_id] = T_wc
-            self._published[kf_id] = T_wc
-        return out
+            else:
+                T_old, d_old = self._published[kf_id]
+                c = 1.0 if d_old is kf.disp else depth_scale_change(d_old, kf.disp)  # replaced, never edited
+                if max(_pose_distance(T_old, T_wc), abs(np.log(c))) <= self.pose_update_tolerance:
+                    continue   # changes below the tolerance accumulate until they exceed it
+                out.updated_keyframes[kf_id] = (T_wc, c)
+            self._published[kf_id] = (T_wc, kf.disp)
 
     def apply_corrections(self, poses: dict[int, np.ndarray], scales: dict[int, float]) -> int:
         """Apply external keyframe corrections (loop closure: new ``T_WC`` (4, 4) and depth scale ``c`` per
@@ -151,8 +163,8 @@ class FrontendEngine:
                 state = self.odometry.vio.states.get(k)
                 if state is not None:  # v' = c R_c v, with C[:3, :3] = c R_c
                     state.velocity = C[:3, :3] @ state.velocity.to(torch.float64)
-        for k, (T_wc, _) in updates.items():
-            self._published[k] = T_wc.numpy()
+        for k, (T_wc, _) in updates.items():   # the loop detector publishes these corrections itself
+            self._published[k] = (T_wc.numpy(), self.odometry.keyframes[k].disp)
         return len(updates)
 
     def keyframe_state(self, kf_id: int) -> KeyframeState:

@@ -371,8 +371,8 @@ class FrontendNode(VigsNode):
         if out.updated_keyframes:
             ids = sorted(out.updated_keyframes)
             self.pub_update.publish(pose_update_to_msg(self.types, PoseUpdateData(
-                out.t_ns, np.array(ids), np.stack([out.updated_keyframes[i] for i in ids]), np.ones(len(ids)),
-                p["map_frame"])))
+                out.t_ns, np.array(ids), np.stack([out.updated_keyframes[i][0] for i in ids]),
+                np.array([out.updated_keyframes[i][1] for i in ids]), p["map_frame"])))
         if out.new_keyframes or out.updated_keyframes:
             newest = max(self.engine.odometry.keyframes)
             kf = self.engine.odometry.keyframes[newest]

@@ -12,12 +12,14 @@ fields, ``flow.*`` :class:`vigs_core.frontend.DISFlowConfig` fields):
 
 * in ``keyframe_topic`` (vigs_msgs/Keyframe, transient-local): grey image, grid disparities (depth = 1 /
   disparity), pose; the grid stride is the image width over the disparity width;
-* in ``frontend_update_topic`` (vigs_msgs/KeyframePoseUpdate): keeps the stored keyframe poses current;
+* in ``frontend_update_topic`` (vigs_msgs/KeyframePoseUpdate): keeps the stored keyframe poses and depths
+  current (the depth scale ``c``: e.g. the IMU initialisation re-expresses the world in metres);
 * out ``pose_update_topic`` (vigs_msgs/KeyframePoseUpdate): corrected poses ``T'_WC`` and depth scales ``c``;
 * out ``status_topic`` (diagnostics: candidates, loops found / rejected, PGBA runs).
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import cv2
@@ -108,10 +110,8 @@ class LoopDetectorNode(VigsNode):
         update = self.status.decode(msg_to_pose_update, msg, "pose_update", "keyframe pose update")
         if update is None:
             return
-        for kf_id, T in zip(update.ids, update.poses):
-            view = self.views.get(int(kf_id))
-            if view is not None:
-                view.T_WC = torch.as_tensor(T, dtype=F64)
+        for kf_id, T, c in zip(update.ids, update.poses, update.scales):
+            self._replace_view(int(kf_id), torch.as_tensor(T, dtype=F64), float(c))
 
     def poll(self) -> None:
         """Publish a finished PGBA's corrections; start PGBA when a loop is pending."""
@@ -133,8 +133,7 @@ class LoopDetectorNode(VigsNode):
         for k, C in corrections_for(sorted(self.views), corrections).items():
             T, c = corrected_pose(C, self.views[k].T_WC)
             updates[k] = (T, c)
-            self.views[k].T_WC = T
-            self.views[k].depth = self.views[k].depth * c
+            self._replace_view(k, T, c)
         if not updates:
             return
         self.closure.record_applied({k: c for k, (_, c) in updates.items()})
@@ -144,6 +143,13 @@ class LoopDetectorNode(VigsNode):
             np.array([updates[k][1] for k in ids]), self.p["map_frame"])))
         self.status.count("corrections_out")
         self.get_logger().info(f"loop closure: corrected {len(ids)} keyframes")
+
+    def _replace_view(self, kf_id: int, T_WC: torch.Tensor, depth_scale: float) -> None:
+        """A new view with pose ``T_WC`` and depths times ``depth_scale`` (views handed to the worker thread
+        are snapshots: never edited in place)."""
+        view = self.views.get(kf_id)
+        if view is not None:
+            self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, depth=view.depth * depth_scale)
 
     def close(self) -> None:
         if self.closure is not None:

@@ -71,8 +71,8 @@ class LoopClosureDriver:
         self.closure = LoopClosure(config, estimator, odometry.intr)
         self.corrections_applied = 0
         self._registered: list[int] = []
-        self._views: dict[int, KeyframeView] = {}   # cached views of keyframes that no longer change
-        self._window: set[int] = set()              # the frontend's window at the previous step
+        # cached views, with the keyframe's pose and disparity tensors they were built from
+        self._views: dict[int, tuple[torch.Tensor, torch.Tensor, KeyframeView]] = {}
 
     def step(self) -> PGBAResult | None:
         """Apply a finished PGBA, register new keyframes, start PGBA if a loop waits; returns the applied result."""
@@ -114,7 +114,6 @@ class LoopClosureDriver:
         corrections = corrections_for(sorted(self.odometry.keyframes), result.corrections)
         updates = apply_to_odometry(self.odometry, corrections)
         self.closure.record_applied({k: c for k, (_, c) in updates.items()})
-        self._views.clear()
         vio = getattr(self.odometry, "vio", None)
         for k, C in corrections.items():
             state = getattr(vio, "states", {}).get(k) if vio is not None else None
@@ -128,14 +127,16 @@ class LoopClosureDriver:
         return updates
 
     def _current_views(self) -> dict[int, KeyframeView]:
-        """Views of all keyframes: rebuilt for those in the frontend's window now or at the previous step (BA
-        still moves them), cached for the others (cleared when a correction is applied)."""
-        window = set(getattr(getattr(self.odometry, "graph", None), "keyframes", self.odometry.keyframes))
-        for k in window | self._window | (set(self.odometry.keyframes) - set(self._views)):
-            if k in self.odometry.keyframes:
-                self._views[k] = keyframe_view(self.odometry.keyframes[k], self.closure.unit(k))
-        self._window = window
-        return self._views
+        """Views of all keyframes, rebuilt where the keyframe's pose or disparity changed since (BA in the
+        window, the visual-inertial world alignment that re-expresses every keyframe, a loop correction: the
+        frontend replaces these tensors, it never edits them in place), cached otherwise."""
+        views = {}
+        for k, kf in self.odometry.keyframes.items():
+            cached = self._views.get(k)
+            if cached is None or cached[0] is not kf.pose or cached[1] is not kf.disp:
+                cached = self._views[k] = (kf.pose, kf.disp, keyframe_view(kf, self.closure.unit(k)))
+            views[k] = cached[2]
+        return views
 
     def _metric(self) -> bool:
         vio = getattr(self.odometry, "vio", None)

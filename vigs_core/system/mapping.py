@@ -206,8 +206,7 @@ class OnlineMapping:
             if kf is None or (self._seen[k][0] is kf.pose and self._seen[k][1] is kf.disp):
                 continue   # the frontend replaces these tensors when it changes them (BA, alignment, loop)
             T_new, d_new = self._current(k)
-            ok = (d_old > 0) & (d_new > 0)
-            c = float(torch.median(d_old[ok] / d_new[ok])) if bool(ok.any()) else 1.0
+            c = depth_scale_change(d_old, d_new)
             moved = float(se3_log(torch.linalg.inv(T_old) @ T_new).norm())
             if moved > self.config.pose_tolerance or abs(np.log(c)) > self.config.pose_tolerance:
                 poses[k], scales[k] = T_new, c
@@ -215,6 +214,13 @@ class OnlineMapping:
         if poses:
             self.mapper.update_keyframe_poses(poses, scales)
             self.pose_update_batches += 1
+
+
+def depth_scale_change(d_old: torch.Tensor, d_new: torch.Tensor) -> float:
+    """The scale ``c = median(d_old / d_new)`` by which a keyframe's depths grew between two versions of its
+    disparities (cells positive in both; 1 without any): ``c = s`` for a world rescaled by ``s``."""
+    ok = (d_old > 0) & (d_new > 0)
+    return float(torch.median(d_old[ok] / d_new[ok])) if bool(ok.any()) else 1.0
 
 
 def _rounded(metrics: dict) -> dict:

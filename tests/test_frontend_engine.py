@@ -1,0 +1,59 @@
+"""The frontend node's engine reports keyframe changes as the mapper and the loop detector need them: the pose
+and the depth scale since the last publication (the IMU initialisation re-expresses the world in metres), and
+small changes accumulate until they pass the tolerance instead of being dropped frame by frame."""
+import numpy as np
+import torch
+
+from vigs_core.camera import CameraModel
+from vigs_core.frontend.odometry import Keyframe
+from vigs_core.geometry import se3_inverse, se3_exp
+from vigs_core.system import PipelineConfig
+from vigs_core.types import ImuNoise
+from vigs_ros.frontend_engine import FrameOutput, FrontendEngine
+
+D = torch.float64
+
+
+def engine_with_keyframe():
+    camera = CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5)
+    config = PipelineConfig(width=64, height=48)
+    engine = FrontendEngine(camera, config, np.eye(4), None, ImuNoise(), pose_update_tolerance=1e-3)
+    grid = engine.odometry.grid
+    T_wc = se3_exp(torch.tensor([0.5, -0.2, 1.0, 0.1, 0.2, -0.3], dtype=D))
+    disp = torch.linspace(0.2, 1.0, grid.size, dtype=D)
+    engine.odometry.keyframes[3] = Keyframe(3, 10, np.zeros((48, 64), np.uint8), se3_inverse(T_wc), disp)
+    out = FrameOutput(10, None)
+    engine.report_keyframes(out, metric=False)
+    assert [kf.id for kf in out.new_keyframes] == [3] and not out.new_keyframes[0].metric
+    return engine, T_wc
+
+
+def test_world_rescaling_is_reported_with_its_depth_scale():
+    engine, T_wc = engine_with_keyframe()
+    kf = engine.odometry.keyframes[3]
+    s = 0.3   # world x -> s x: positions times s, disparities over s
+    T_new = T_wc.clone()
+    T_new[:3, 3] *= s
+    kf.pose, kf.disp = se3_inverse(T_new), kf.disp / s
+    out = FrameOutput(20, None)
+    engine.report_keyframes(out, metric=True)
+    T_reported, c = out.updated_keyframes[3]
+    np.testing.assert_allclose(T_reported, T_new.numpy(), atol=1e-9)
+    assert abs(c - s) < 1e-12
+    again = FrameOutput(30, None)
+    engine.report_keyframes(again, metric=True)
+    assert not again.updated_keyframes   # published once
+
+
+def test_small_moves_accumulate_until_they_pass_the_tolerance():
+    engine, T_wc = engine_with_keyframe()
+    kf = engine.odometry.keyframes[3]
+    reported = []
+    for step in range(1, 6):   # 0.4 mm per frame, tolerance 1 mm
+        T = T_wc.clone()
+        T[0, 3] += 4e-4 * step
+        kf.pose = se3_inverse(T)
+        out = FrameOutput(step, None)
+        engine.report_keyframes(out, metric=False)
+        reported.append(3 in out.updated_keyframes)
+    assert reported == [False, False, True, False, False]
