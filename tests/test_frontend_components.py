@@ -74,6 +74,30 @@ def test_initial_flow_helps_large_motion_and_confidence_flags_occlusion():
     assert np.all(guided.weight[truth[:, 0] > W - 1] == 0)
 
 
+def test_pair_estimate_uses_each_direction_as_the_others_backward_flow():
+    src = texture(2)
+    A = np.float32([[1, 0, 6.0], [0, 1, -3.0]])
+    dst = warp(src, A)
+    dst[40:88, 100:150] = texture(8)[40:88, 100:150]       # seen in dst only: occludes part of src
+    est = DISFlowEstimator(PixelGrid(W, H, 8), DISFlowConfig(preset="ultrafast", finest_scale=0))
+    c = est.grid.coords()
+    fwd_truth, bwd_truth = c + [6.0, -3.0], c - [6.0, -3.0]
+    ab, ba = est.estimate_pair(src, dst, fwd_truth + 1.0, bwd_truth - 1.0)
+    single = est.estimate(src, dst, fwd_truth + 1.0)
+    ok = (fwd_truth[:, 0] < W - 10) & (fwd_truth[:, 1] > 10) & ~((fwd_truth[:, 0] > 96) & (fwd_truth[:, 0] < 154)
+                                                               & (fwd_truth[:, 1] > 36) & (fwd_truth[:, 1] < 92))
+    assert np.median(np.linalg.norm(ab.target - fwd_truth, axis=1)[ok]) < 0.2
+    assert np.median(np.linalg.norm(ba.target - bwd_truth, axis=1)[ok & (c[:, 0] > 10)]) < 0.2
+    # same confidences as two separate estimates up to DIS noise: high on the clean part, low on the occlusion
+    occl = (fwd_truth[:, 0] > 104) & (fwd_truth[:, 0] < 146) & (fwd_truth[:, 1] > 44) & (fwd_truth[:, 1] < 84)
+    for corr in (ab, single):
+        assert corr.weight[ok].mean() > 0.6 and corr.weight[occl].mean() < 0.3 * corr.weight[ok].mean()
+    # the forward-backward term of a -> b is the flow b -> a at the targets: zero where the two agree
+    fb = est.dense_flow(dst, src, est._initial_flow(bwd_truth - 1.0))
+    assert np.allclose(ab.weight, est._correspondences(src, dst, est.dense_flow(src, dst, est._initial_flow(
+        fwd_truth + 1.0)), fb).weight, atol=1e-6)
+
+
 def test_keyframe_policy():
     p = KeyframePolicy(KeyframePolicyConfig(flow_threshold_px=2.4, max_interval_s=3.0, translation_flow_px=None))
     assert not p.is_keyframe(2.0, 0.5)
@@ -91,7 +115,7 @@ def test_keyframe_policy():
 def test_frame_graph_edges_and_sliding_window():
     g = FrameGraph(FrameGraphConfig(window=4, fixed=2, temporal_radius=1, covis_max_flow_px=30.0,
                                     covis_max_edges=1))
-    flows = {(0, 2): 10.0, (0, 3): 25.0, (1, 3): 40.0}
+    flows = {(0, 2): 10.0, (0, 3): 25.0, (1, 3): 40.0, (0, 4): 5.0, (2, 4): 20.0}
     pf = lambda i, j: flows.get((i, j), 99.0)
     assert g.add_keyframe(0, pf) == ([], [])
     assert g.fixed_ids() == [0]
@@ -102,8 +126,10 @@ def test_frame_graph_edges_and_sliding_window():
     new, _ = g.add_keyframe(3, pf)
     assert set(new) == {(2, 3), (3, 2), (0, 3), (3, 0)}       # (1, 3) flow 40 is not co-visible
     assert g.fixed_ids() == [0, 1]
+    assert g.is_temporal(2, 3) and g.is_temporal(3, 2) and not g.is_temporal(0, 3)
     new, removed = g.add_keyframe(4, pf)
     assert removed == [0] and g.keyframes == [1, 2, 3, 4]
+    assert set(new) == {(3, 4), (4, 3), (2, 4), (4, 2)}       # 0 (flow 5) leaves the window: 2 is the partner
     assert all(0 not in e for e in g.edges)
     assert (3, 4) in g.edges and (4, 3) in g.edges
     with pytest.raises(ValueError):

@@ -82,6 +82,47 @@ def test_schur_complement_matches_dense_elimination():
     assert torch.allclose(s, s_ref, atol=1e-8 * s_ref.abs().max())
 
 
+def test_normal_equations_match_per_pixel_source_jacobians():
+    """linearize_visual forms the source-pose blocks from J_i = -J_j Ad; compare with the per-pixel J_i."""
+    poses, disps, coords, edges = make_problem(n=3, grid=(6, 5))
+    poses, disps = perturb(poses, disps)
+    sys_ = linearize_visual(poses, disps, edges, coords, INTR, huber_delta=1e9)
+    proj = reproject(poses[edges.ii], poses[edges.jj], disps[edges.ii], coords, INTR, jacobians=True)
+    r = edges.target - proj.uv
+    W = edges.pixel_weight() * proj.valid[..., None]
+    n, P = disps.shape
+    B = torch.zeros(n, n, 6, 6, dtype=torch.float64)
+    v = torch.zeros(n, 6, dtype=torch.float64)
+    E_src = torch.zeros(n, P, 6, dtype=torch.float64)    # the source's own E block
+    for e, (i, j) in enumerate(zip(edges.ii.tolist(), edges.jj.tolist())):
+        J = {i: proj.J_i[e].reshape(-1, 6), j: proj.J_j[e].reshape(-1, 6)}
+        w = W[e].reshape(-1)
+        for a in (i, j):
+            v[a] += J[a].T @ (w * r[e].reshape(-1))
+            for b in (i, j):
+                B[a, b] += J[a].T @ (w[:, None] * J[b])
+        E_src[i] += (W[e] * proj.J_d[e])[..., None].mul(proj.J_i[e]).sum(1)
+    assert torch.allclose(sys_.B, B, atol=1e-9 * B.abs().max())
+    assert torch.allclose(sys_.v, v, atol=1e-9 * v.abs().max())
+    own = sys_.block_E[:, 0]                                      # block 0 of each source is its own pose
+    assert torch.allclose(own, E_src[sys_.src], atol=1e-9 * E_src.abs().max())
+
+
+def test_float32_visual_terms_reach_the_float64_solution():
+    poses, disps, coords, edges = make_problem(grid=(16, 10))
+    g = torch.Generator().manual_seed(3)
+    noisy = EdgeSet(edges.ii, edges.jj, edges.target + 0.5 * torch.randn(edges.target.shape, generator=g,
+                                                                       dtype=torch.float64), edges.weight)
+    p0, d0 = perturb(poses, disps)
+    fixed = torch.tensor([True, True, False, False])
+    ref = bundle_adjust(p0, d0, noisy, coords, INTR, fixed, BAConfig(iterations=20))
+    f32 = bundle_adjust(p0, d0, noisy, coords, INTR, fixed, BAConfig(iterations=20), visual_dtype=torch.float32)
+    assert f32.poses.dtype == torch.float64 and f32.disps.dtype == torch.float64
+    assert (f32.poses - ref.poses).abs().max() < 1e-5
+    assert ((f32.disps - ref.disps).abs() / ref.disps).max() < 1e-4
+    assert f32.costs[-1] < 1.0001 * ref.costs[-1] and f32.costs[-1] < 0.05 * f32.costs[0]
+
+
 def test_exact_problem_converges_to_machine_precision():
     poses, disps, coords, edges = make_problem()
     p0, d0 = perturb(poses, disps)

@@ -84,3 +84,9 @@ class CorrespondenceEstimator(Protocol):
         ``forward_backward``: whether the confidences may use a (costly) consistency check; False asks for a
         cheaper estimate (per-frame tracking).
         """
+
+    def estimate_pair(self, a: np.ndarray, b: np.ndarray, initial_ab: np.ndarray | None = None,
+                      initial_ba: np.ndarray | None = None) -> tuple[Correspondences, Correspondences]:
+        """Correspondences ``a -> b`` and ``b -> a`` (the two edges of a keyframe pair) with the confidences
+        of :meth:`estimate`; an estimator may share work between the directions (e.g. each direction's flow
+        is the other's backward flow). ``initial_ab`` / ``initial_ba``: guesses of the targets, or None."""

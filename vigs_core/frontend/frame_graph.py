@@ -3,9 +3,9 @@
 Edges are directed keyframe pairs ``(i, j)`` (source grid pixels of ``i`` observed in ``j``) and always come in
 both directions, so both keyframes' disparities are constrained. A new keyframe is connected to its
 ``temporal_radius`` predecessors (temporal adjacency) and to up to ``covis_max_edges`` older window keyframes
-whose predicted mean flow to it (geometric warp with the current poses and depths, see
-:func:`vigs_core.frontend.odometry.DenseOdometry.predicted_flow`) is below ``covis_max_flow_px``
-(flow-based co-visibility).
+(among those that stay in the window) whose predicted mean flow to it (geometric warp with the current poses
+and depths, see :func:`vigs_core.frontend.odometry.DenseOdometry.predicted_flow`) is below
+``covis_max_flow_px`` (flow-based co-visibility).
 
 Keyframes leaving the window are FIXED, not marginalised: their poses and disparities are frozen at their last
 estimate and their edges are dropped. Inside the window the ``fixed`` oldest keyframes are held constant as the
@@ -62,7 +62,8 @@ class FrameGraph:
             raise ValueError(f"FrameGraph.add_keyframe: id {kf_id} not newer than {self.keyframes[-1]}")
         cfg = self.config
         previous = self.keyframes[-cfg.temporal_radius:] if cfg.temporal_radius > 0 else []
-        older = [k for k in self.keyframes if k not in previous]
+        staying = self.keyframes[max(0, len(self.keyframes) + 1 - cfg.window):]   # still in the window after
+        older = [k for k in staying if k not in previous]
         scored = sorted((predicted_flow(k, kf_id), k) for k in older)
         covisible = [k for flow, k in scored if flow < cfg.covis_max_flow_px][:cfg.covis_max_edges]
         new_edges = []
@@ -76,6 +77,11 @@ class FrameGraph:
             removed.append(old)
             self.edges = {e for e in self.edges if old not in e}
         return new_edges, removed
+
+    def is_temporal(self, i: int, j: int) -> bool:
+        """Whether window keyframes ``i`` and ``j`` are at most ``temporal_radius`` apart in the window (an
+        edge between them is a temporal one; other edges are co-visibility edges)."""
+        return abs(self.keyframes.index(i) - self.keyframes.index(j)) <= self.config.temporal_radius
 
     def fixed_ids(self) -> list[int]:
         """Window keyframes held constant: the ``fixed`` oldest, leaving at least one free."""

@@ -24,6 +24,7 @@ relative to a reference keyframe, so final poses follow later keyframe updates (
 """
 from __future__ import annotations
 
+import itertools
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -52,15 +53,22 @@ class OdometryConfig:
         flow: DIS estimator of the keyframe edges (BA correspondences). Default: ultrafast refined down to
             the input resolution (``finest_scale=0``): on the first 30 s of hybrid V1_01 (vision only) the
             camera-frame Sim(3) ATE fell from 2.43 to 1.62 cm (1.98 to 1.01 cm with ``hold_fixed_disparity``)
-            for about 15 ms more CPU per frame at one keyframe per 12 frames (each new keyframe's edges cost
-            about 12 DIS calls of about 17 ms); presets fast / medium at ``finest_scale=1`` gave 1.6 cm (with
-            ``hold_fixed_disparity``) for about 7-10 ms.
+            for about 15 ms more CPU per frame at one keyframe per 12 frames (each new keyframe's edges then
+            cost about 12 DIS calls of about 17 ms; computing both directions of a pair together,
+            :meth:`~vigs_core.frontend.dis_flow.DISFlowEstimator.estimate_pair`, halved that to 6); presets
+            fast / medium at ``finest_scale=1`` gave 1.6 cm (with ``hold_fixed_disparity``) for about 7-10 ms.
+        covis_flow: DIS estimator of the co-visibility edges (``graph.covis_max_edges``; temporal edges use
+            ``flow``). Same as ``flow`` by default: ``finest_scale=1`` here saved about 3 ms per frame on the
+            whole hybrid MH_03 (vision only) but its recall@10cm fell from 29 to 17 %.
         tracking_flow: DIS estimator of every frame against the latest keyframe (pose-only tracking and the
             pre-initialisation matching); kept at ultrafast / ``finest_scale=1`` (about 4 ms): refining it to the
             input resolution cost 16 ms per frame for less gain (2.43 to 2.15 cm).
         keyframes: keyframe policy.
         graph: frame graph / window.
-        ba: dense BA settings used per new keyframe.
+        ba: dense BA settings used per new keyframe: at most 3 LM iterations, stopping early once an accepted
+            step lowers the cost by less than 1 % (``rel_tol=0.01``). On hybrid MH_03 the median relative
+            decrease was 58 % in the first iteration, 0.37 % in the second and 5e-6 in the third, so the third
+            was nearly always wasted; the early stop cut BA's CPU time per keyframe from 82 to 65 ms.
         init_ba_iterations: LM iterations of the initial BA.
         init_min_parallax_px: median translation-induced flow needed to initialise, input pixels.
         init_min_inliers: fraction of confident correspondences that must be essential-matrix inliers.
@@ -70,7 +78,10 @@ class OdometryConfig:
             lowered the ATE on 20 s of hybrid V1_01 from 0.71 to 0.57 cm but costs about 60 % more time).
         tracking_iterations: Gauss-Newton iterations of pose-only tracking.
         min_confidence: correspondences below this confidence are ignored, [0, 1].
-        solver_dtype: "float32" (faster) or "float64" for BA and tracking; poses are stored in float64.
+        solver_dtype: "float32" (faster) or "float64" for tracking and BA's visual terms (linearisation, Schur
+            complement, cost; :func:`~vigs_core.solver.bundle_adjust` ``visual_dtype``); poses are stored, and
+            the reduced camera system is solved, in float64. float32 BA cut its CPU time by about 35 % with
+            the same ATE (first 600 frames of hybrid V1_01 / MH_03: 1.11 / 5.75 cm either way).
         hold_fixed_disparity: the window's fixed keyframes (``graph.fixed``) keep their disparities as well as
             their poses in BA, so their depth maps pin the monocular scale (the gauge, see
             :mod:`vigs_core.frontend.frame_graph`); off, the scale is a free direction of BA that only the LM
@@ -83,9 +94,10 @@ class OdometryConfig:
     grid_stride: int = 8
     flow: DISFlowConfig = field(default_factory=lambda: DISFlowConfig(finest_scale=0))
     tracking_flow: DISFlowConfig = field(default_factory=DISFlowConfig)
+    covis_flow: DISFlowConfig = field(default_factory=lambda: DISFlowConfig(finest_scale=0))
     keyframes: KeyframePolicyConfig = field(default_factory=KeyframePolicyConfig)
     graph: FrameGraphConfig = field(default_factory=FrameGraphConfig)
-    ba: BAConfig = field(default_factory=lambda: BAConfig(iterations=3))
+    ba: BAConfig = field(default_factory=lambda: BAConfig(iterations=3, rel_tol=0.01))
     init_ba_iterations: int = 15
     init_min_parallax_px: float = 10.0
     init_min_inliers: float = 0.6
@@ -137,6 +149,7 @@ class DenseOdometry:
         self.grid = PixelGrid(width, height, self.config.grid_stride)
         self.estimator = DISFlowEstimator(self.grid, self.config.flow)
         self.tracking_estimator = DISFlowEstimator(self.grid, self.config.tracking_flow)
+        self.covis_estimator = DISFlowEstimator(self.grid, self.config.covis_flow)
         self.policy = KeyframePolicy(self.config.keyframes)
         self.graph = FrameGraph(self.config.graph)
         self.coords = torch.from_numpy(self.grid.coords())
@@ -213,11 +226,10 @@ class DenseOdometry:
         return uv, valid & inside
 
     def _estimate(self, source: np.ndarray, target: np.ndarray, init: torch.Tensor | None,
-                  forward_backward: bool = True, per_frame: bool = False) -> Correspondences:
-        """Correspondences source -> target; ``per_frame`` uses the (cheaper) estimator of every-frame matching
-        (tracking, initialisation), otherwise the keyframe-edge estimator."""
+                  forward_backward: bool = True, estimator: DISFlowEstimator | None = None) -> Correspondences:
+        """Correspondences source -> target with ``estimator`` (default: the keyframe-edge estimator)."""
         t0 = self._tic()
-        est = self.tracking_estimator if per_frame else self.estimator
+        est = estimator or self.estimator
         corr = est.estimate(source, target, None if init is None else init.numpy(), forward_backward)
         self._toc("flow", t0)
         return corr
@@ -264,7 +276,7 @@ class DenseOdometry:
             return
         last = self.frames[idx - 1].pending
         corr = self._estimate(self._ref_image, image, None if last is None else torch.from_numpy(last.target),
-                              per_frame=True)
+                              estimator=self.tracking_estimator)
         self.frames[idx].pending = corr
         cand_idx, _, cand_corr = self._init_candidates[-1]
         base = self.coords.numpy() if cand_corr is None else cand_corr.target
@@ -376,16 +388,31 @@ class DenseOdometry:
         for e in list(self.edges):
             if e not in self.graph.edges:
                 del self.edges[e]
-        missing = [e for e in new_edges if e not in self.edges]
-        self._refine_edges(missing)
+        new_edges = [e for e in new_edges if e in self.graph.edges]   # not to a keyframe that left the window
+        self._refine_edges([e for e in new_edges if e not in self.edges])
         return new_edges
 
     def _refine_edges(self, edges: list[tuple[int, int]]) -> None:
-        """(Re-)estimate the correspondences of ``edges``, each initialised by the geometric warp."""
+        """(Re-)estimate the correspondences of ``edges``, each initialised by the geometric warp, temporal edges
+        with ``flow`` and co-visibility edges with ``covis_flow``; an edge whose reverse is in ``edges`` too is
+        estimated together with it (:meth:`CorrespondenceEstimator.estimate_pair`: two flows instead of four)."""
+        todo = set(edges)
         for i, j in edges:
+            if (i, j) not in todo:
+                continue
+            todo.discard((i, j))
             src, dst = self.keyframes[i], self.keyframes[j]
-            uv, _ = self._warp(src, dst.pose)
-            self.edges[(i, j)] = self._estimate(src.image, dst.image, uv)
+            est = self.estimator if self.graph.is_temporal(i, j) else self.covis_estimator
+            uv_ij, _ = self._warp(src, dst.pose)
+            if (j, i) not in todo:
+                self.edges[(i, j)] = self._estimate(src.image, dst.image, uv_ij, estimator=est)
+                continue
+            todo.discard((j, i))
+            uv_ji, _ = self._warp(dst, src.pose)
+            t0 = self._tic()
+            self.edges[(i, j)], self.edges[(j, i)] = est.estimate_pair(src.image, dst.image, uv_ij.numpy(),
+                                                                       uv_ji.numpy())
+            self._toc("flow", t0)
 
     def _ba(self, iterations: int, fixed: list[int] | None = None) -> None:
         """BA over the window. ``fixed``: keyframes whose poses are held (disparities free); by default the
@@ -408,7 +435,7 @@ class DenseOdometry:
         extra, extra_state = self._additional_terms(ids, poses)
         hold = mask if (fixed is None and self._holds_scale_gauge()) else None
         res = bundle_adjust(poses, disps, EdgeSet(ii, jj, target, weight), self.coords, self.intr, mask, cfg,
-                            extra=extra, extra_state=extra_state, fixed_disparity=hold)
+                            extra=extra, extra_state=extra_state, fixed_disparity=hold, visual_dtype=self._dtype)
         self._after_ba(ids, res)
         for n, k in enumerate(ids):
             self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n], res.disps[n]
@@ -440,7 +467,12 @@ class DenseOdometry:
         return float((w * d).sum() / w.sum()) if float(w.sum()) > 0 else 0.0
 
     def _predict_pose(self) -> torch.Tensor:
-        posed = [f.odom for f in self.frames[:-1] if f.odom is not None][-2:]
+        posed = []   # the last two posed frames before the current one, oldest first
+        for f in itertools.islice(reversed(self.frames), 1, None):
+            if f.odom is not None:
+                posed.insert(0, f.odom)
+                if len(posed) == 2:
+                    break
         if len(posed) == 1:
             return posed[0]
         pred = posed[1] @ se3_inverse(posed[0]) @ posed[1]
@@ -456,7 +488,7 @@ class DenseOdometry:
         kf = self.keyframes[self.graph.keyframes[-1]]
         pred = self._predict_pose()
         uv, _ = self._warp(kf, pred)
-        corr = self._estimate(kf.image, image, uv, forward_backward=False, per_frame=True)
+        corr = self._estimate(kf.image, image, uv, forward_backward=False, estimator=self.tracking_estimator)
         t0 = self._tic()
         dt = self._dtype
         pose = align_pose(kf.pose.to(dt), kf.disp.to(dt), self.coords.to(dt), self.intr,

@@ -93,7 +93,8 @@ def _solve_spd(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
 def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
                   intr: Intrinsics, fixed: torch.Tensor, config: BAConfig | None = None,
                   extra: AdditionalTerms | None = None, extra_state: Any = None,
-                  fixed_disparity: torch.Tensor | None = None) -> BAResult:
+                  fixed_disparity: torch.Tensor | None = None, visual_dtype: torch.dtype | None = None
+                  ) -> BAResult:
     """Levenberg-Marquardt dense BA (see the module docstring).
 
     Args:
@@ -105,6 +106,9 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         extra: optional additional residual terms over the poses and extra states.
         fixed_disparity: (n,) bool, keyframes whose disparities are held constant (a fixed keyframe with
             fixed disparities pins the monocular scale through its depth map); None holds none.
+        visual_dtype: dtype of the visual linearisation, Schur complement, back-substitution and cost (e.g.
+            float32, about 1.5x faster on CPU); the reduced camera system, the additional terms and the
+            returned state keep the dtype of ``poses``. None: that of ``poses``.
     Returns:
         :class:`BAResult` with the optimised poses and disparities.
     """
@@ -117,16 +121,20 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
     free = torch.cat((~fixed[:, None].expand(n, 6).reshape(-1),
                       torch.ones(m, dtype=torch.bool, device=poses.device)))
     lam = cfg.lm_lambda
+    vd = poses.dtype if visual_dtype is None else visual_dtype
+    v_edges = EdgeSet(edges.ii, edges.jj, edges.target.to(vd), edges.weight.to(vd))
+    v_coords = coords.to(vd)
 
     def total_cost(T, d, st):
-        c = visual_cost(T, d, edges, coords, intr, cfg.huber_delta)
-        return c + extra.cost(T, st) if extra is not None else c
+        c = float(visual_cost(T.to(vd), d.to(vd), v_edges, v_coords, intr, cfg.huber_delta))
+        return c + float(extra.cost(T, st)) if extra is not None else c
 
     result = BAResult(poses, disps, extra_state)
-    cost0 = float(total_cost(poses, disps, extra_state))
+    cost0 = total_cost(poses, disps, extra_state)
     result.costs.append(cost0)
     for it in range(cfg.iterations):
-        system = linearize_visual(result.poses, result.disps, edges, coords, intr, cfg.huber_delta)
+        system = linearize_visual(result.poses.to(vd), result.disps.to(vd), v_edges, v_coords, intr,
+                                  cfg.huber_delta)
         if fixed_disparity is not None:
             system.freeze_disparities(fixed_disparity)
         if extra is not None:
@@ -134,8 +142,9 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         accepted = False
         while not accepted and lam <= cfg.lm_lambda_max:
             C_d = system.C * (1.0 + lam) + cfg.disparity_damping
-            S, s = schur_reduce(system, C_d)
+            S, s = (x.to(poses.dtype) for x in schur_reduce(system, C_d))
             B_diag = torch.diagonal(system.B, dim1=2, dim2=3).diagonal(dim1=0, dim2=1).T.reshape(-1)  # (6n,)
+            B_diag = B_diag.to(poses.dtype)
             H = torch.zeros(6 * n + m, 6 * n + m, dtype=poses.dtype, device=poses.device)
             g = torch.zeros(6 * n + m, dtype=poses.dtype, device=poses.device)
             H[:6 * n, :6 * n] = S + torch.diag(lam * B_diag)
@@ -153,11 +162,11 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
             dx = torch.zeros(6 * n + m, dtype=H.dtype, device=H.device)
             dx[free] = dx_f
             dxi = dx[:6 * n].view(n, 6)
-            dd = back_substitute(system, C_d, dxi)
+            dd = back_substitute(system, C_d, dxi.to(vd)).to(disps.dtype)
             T_new = se3_exp(dxi) @ result.poses
             d_new = (result.disps + dd).clamp(min=cfg.min_disparity)
             st_new = extra.retract(result.extra_state, dx[6 * n:]) if extra is not None else None
-            cost1 = float(total_cost(T_new, d_new, st_new))
+            cost1 = total_cost(T_new, d_new, st_new)
             if cost1 <= cost0:
                 accepted = True
                 rel = (cost0 - cost1) / max(cost0, 1e-300)
@@ -199,7 +208,7 @@ def align_pose(T_src: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor, in
     T = T_init.clone()
     eye6 = torch.eye(6, dtype=T.dtype, device=T.device)
     for _ in range(iterations):
-        proj = reproject(T_src[None], T[None], disp[None], coords, intr, jacobians=True)
+        proj = reproject(T_src[None], T[None], disp[None], coords, intr, jacobians=True, source_jacobian=False)
         r = target - proj.uv[0]
         w = weight * huber_weight(r.norm(dim=-1), huber_delta) * proj.valid[0]
         J = proj.J_j[0]                                               # (P, 2, 6)

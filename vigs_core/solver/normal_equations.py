@@ -89,8 +89,10 @@ class VisualSystem:
 
 def residuals(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
               intr: Intrinsics, jacobians: bool = False):
-    """Residuals ``u* - pi`` (E, P, 2) and the :class:`Reprojection` they came from."""
-    proj = reproject(poses[edges.ii], poses[edges.jj], disps[edges.ii], coords, intr, jacobians)
+    """Residuals ``u* - pi`` (E, P, 2) and the :class:`Reprojection` they came from (with ``jacobians``:
+    ``J_j``, ``J_d`` and ``Ad``, not the per-pixel ``J_i``)."""
+    proj = reproject(poses[edges.ii], poses[edges.jj], disps[edges.ii], coords, intr, jacobians,
+                     source_jacobian=False)
     return edges.target - proj.uv, proj
 
 
@@ -117,12 +119,14 @@ def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, c
     W = edges.pixel_weight() * wr[..., None]                                # (E, P, 2)
     cost = (edges.pixel_weight().mean(-1) * proj.valid * huber_cost(rnorm, huber_delta)).sum()
 
-    Ji = proj.J_i.reshape(ne, 2 * P, 6)
+    # J_i = -J_j Ad (projective.py), so the source blocks follow from the target ones by 6x6 products:
+    # J_i^T W J_i = Ad^T H_jj Ad, J_i^T W J_j = -Ad^T H_jj, J_i^T W r = -Ad^T J_j^T W r
     Jj = proj.J_j.reshape(ne, 2 * P, 6)
-    Wf = W.reshape(ne, 2 * P, 1)
-    WJi, WJj = Wf * Ji, Wf * Jj
-    WJiT, WJjT = WJi.transpose(1, 2), WJj.transpose(1, 2)                   # (E, 6, 2P)
-    Hii, Hij, Hjj = WJiT @ Ji, WJiT @ Jj, WJjT @ Jj                          # (E, 6, 6)
+    WJjT = (W.reshape(ne, 2 * P, 1) * Jj).transpose(1, 2)                   # (E, 6, 2P)
+    AdT = proj.Ad.transpose(1, 2)
+    Hjj = WJjT @ Jj                                                          # (E, 6, 6)
+    Hij = -(AdT @ Hjj)
+    Hii = -(Hij @ proj.Ad)
     B = torch.zeros(n * n, 6, 6, dtype=poses.dtype, device=poses.device)
     ii, jj = edges.ii, edges.jj
     B.index_add_(0, ii * n + ii, Hii)
@@ -131,17 +135,18 @@ def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, c
     B.index_add_(0, jj * n + jj, Hjj)
     rf = r.reshape(ne, 2 * P, 1)
     v = torch.zeros(n, 6, dtype=poses.dtype, device=poses.device)
-    v.index_add_(0, ii, (WJiT @ rf)[..., 0])
-    v.index_add_(0, jj, (WJjT @ rf)[..., 0])
+    vj = WJjT @ rf                                                           # (E, 6, 1)
+    v.index_add_(0, ii, -(AdT @ vj)[..., 0])
+    v.index_add_(0, jj, vj[..., 0])
     Jd = proj.J_d                                                            # (E, P, 2)
     WJd = W * Jd
     C = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
     w = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
     C.index_add_(0, ii, WJd[..., 0] * Jd[..., 0] + WJd[..., 1] * Jd[..., 1])
     w.index_add_(0, ii, WJd[..., 0] * r[..., 0] + WJd[..., 1] * r[..., 1])
-    # E blocks (P, 6) = sum over the 2 rows of a pixel of J_pose^T W J_d
-    Ei = WJd[..., 0:1] * proj.J_i[..., 0, :] + WJd[..., 1:2] * proj.J_i[..., 1, :]   # (E, P, 6)
-    Ej = WJd[..., 0:1] * proj.J_j[..., 0, :] + WJd[..., 1:2] * proj.J_j[..., 1, :]
+    # E blocks (P, 6) = sum over the 2 rows of a pixel of J_pose^T W J_d; the source's is -E_j Ad
+    Ej = WJd[..., 0:1] * proj.J_j[..., 0, :] + WJd[..., 1:2] * proj.J_j[..., 1, :]   # (E, P, 6)
+    Ei = -(Ej @ proj.Ad)
     src, group = torch.unique(ii, return_inverse=True)                       # group: edge -> source slot
     order = torch.argsort(group, stable=True)
     counts = torch.bincount(group, minlength=src.shape[0])

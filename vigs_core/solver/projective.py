@@ -45,7 +45,7 @@ class Reprojection:
 
     Shapes for a batch of ``E`` edges with ``P`` pixels each: ``uv (E, P, 2)``, ``valid (E, P)`` (point in
     front of the target camera), ``J_i, J_j (E, P, 2, 6)`` w.r.t. the source / target pose, ``J_d (E, P, 2)``
-    w.r.t. the source disparity.
+    w.r.t. the source disparity, and ``Ad (E, 6, 6)`` the adjoint of ``T_ji`` (``J_i = -J_j Ad``).
     """
 
     uv: torch.Tensor
@@ -53,6 +53,7 @@ class Reprojection:
     J_i: torch.Tensor | None = None
     J_j: torch.Tensor | None = None
     J_d: torch.Tensor | None = None
+    Ad: torch.Tensor | None = None
 
 
 # A projection is valid when the point's depth in camera j is at least this fraction of its depth in camera i
@@ -68,7 +69,7 @@ def pixel_rays(coords: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
 
 
 def reproject(T_i: torch.Tensor, T_j: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor,
-              intr: Intrinsics, jacobians: bool = False) -> Reprojection:
+              intr: Intrinsics, jacobians: bool = False, source_jacobian: bool = True) -> Reprojection:
     """Project source pixels of keyframes ``i`` into cameras ``j`` (see the module docstring).
 
     Args:
@@ -76,36 +77,37 @@ def reproject(T_i: torch.Tensor, T_j: torch.Tensor, disp: torch.Tensor, coords: 
         disp: inverse depth of the source pixels, (E, P), 1/m in the map's scale.
         coords: source pixel coordinates, (P, 2) shared by all edges, or (E, P, 2).
         intr: pinhole intrinsics of those coordinates.
-        jacobians: also return ``J_i, J_j, J_d``.
+        jacobians: also return ``J_j, J_d``, ``Ad`` and (with ``source_jacobian``) ``J_i``.
+        source_jacobian: compute ``J_i = -J_j Ad`` per pixel; callers that only need products with it
+            (normal equations, pose-only alignment) pass False and use ``Ad``.
     """
     T_ji = T_j @ se3_inverse(T_i)                                 # (E, 4, 4)
     R, t = T_ji[:, :3, :3], T_ji[:, :3, 3]
-    rays = pixel_rays(coords, intr).expand(disp.shape[0], -1, -1)   # (E, P, 3)
-    P = rays @ R.transpose(1, 2) + t[:, None, :] * disp[..., None]  # (E, P, 3)
+    if coords.dim() == 2:   # shared rays: one (P, 3) x (3, 3E) product instead of E tiny ones
+        E_ = T_ji.shape[0]
+        rot = (pixel_rays(coords, intr) @ R.transpose(1, 2).permute(1, 0, 2).reshape(3, 3 * E_))
+        rot = rot.view(-1, E_, 3).transpose(0, 1)                 # (E, P, 3) = R (x, y, 1) per edge
+    else:
+        rot = pixel_rays(coords, intr) @ R.transpose(1, 2)
+    P = rot + t[:, None, :] * disp[..., None]                     # (E, P, 3)
     X, Y, Z = P.unbind(-1)
     valid = Z > MIN_DEPTH_RATIO
     Zs = torch.where(valid, Z, torch.ones_like(Z))
     inv_z = 1.0 / Zs
-    uv = torch.stack((intr.fx * X * inv_z + intr.cx, intr.fy * Y * inv_z + intr.cy), -1)
+    xn, yn = X * inv_z, Y * inv_z                                  # x' = X/Z, y' = Y/Z
+    fx, fy = intr.fx, intr.fy
+    uv = torch.stack((fx * xn + intr.cx, fy * yn + intr.cy), -1)
     if not jacobians:
         return Reprojection(uv, valid)
-    # closed forms of d pi/dP . dP/dx with x' = X/Z, y' = Y/Z (see the module docstring)
-    xn, yn = X * inv_z, Y * inv_z
-    fx, fy = intr.fx, intr.fy
-    dz = disp * inv_z
-    J_j = torch.zeros(*X.shape, 2, 6, dtype=X.dtype, device=X.device)
-    J_j[..., 0, 0] = fx * dz
-    J_j[..., 0, 2] = -fx * dz * xn
-    J_j[..., 0, 3] = -fx * xn * yn
-    J_j[..., 0, 4] = fx * (1 + xn * xn)
-    J_j[..., 0, 5] = -fx * yn
-    J_j[..., 1, 1] = fy * dz
-    J_j[..., 1, 2] = -fy * dz * yn
-    J_j[..., 1, 3] = -fy * (1 + yn * yn)
-    J_j[..., 1, 4] = fy * xn * yn
-    J_j[..., 1, 5] = fy * xn
+    # closed forms of d pi/dP . dP/dx (see the module docstring), rows (u, v) x columns (rho, phi)
+    fdz, gdz = fx * disp * inv_z, fy * disp * inv_z
+    xy = xn * yn
+    zero = torch.zeros_like(xn)
+    J_j = torch.stack((fdz, zero, -fdz * xn, -fx * xy, fx * (1 + xn * xn), -fx * yn,
+                       zero, gdz, -gdz * yn, -fy * (1 + yn * yn), fy * xy, fy * xn), -1).view(*xn.shape, 2, 6)
     E, P_ = disp.shape
-    J_i = -(J_j.reshape(E, 2 * P_, 6) @ se3_adjoint(T_ji)).reshape(E, P_, 2, 6)
+    Ad = se3_adjoint(T_ji)
+    J_i = -(J_j.reshape(E, 2 * P_, 6) @ Ad).reshape(E, P_, 2, 6) if source_jacobian else None
     J_d = torch.stack((fx * inv_z * (t[:, None, 0] - xn * t[:, None, 2]),
                        fy * inv_z * (t[:, None, 1] - yn * t[:, None, 2])), -1)
-    return Reprojection(uv, valid, J_i, J_j, J_d)
+    return Reprojection(uv, valid, J_i, J_j, J_d, Ad)
