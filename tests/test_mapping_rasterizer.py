@@ -7,7 +7,15 @@ import math
 import torch
 
 from vigs_core.geometry import se3_from_rt, se3_inverse, so3_exp
-from vigs_core.mapping.rasterizer import RenderCamera, RenderSettings, TorchRasterizer, project_gaussians
+from vigs_core.mapping import rasterizer as rasterizer_module
+from vigs_core.mapping.rasterizer import (
+    RenderCamera,
+    RenderSettings,
+    TorchRasterizer,
+    ellipse_meets_tile,
+    frustum_rows,
+    project_gaussians,
+)
 
 torch.set_num_threads(1)
 
@@ -109,3 +117,59 @@ def test_gaussians_behind_or_outside_the_camera_are_not_drawn():
     )
     assert float(out.alpha.abs().max()) == 0.0
     assert out.visible.numel() == 0
+
+
+def test_ellipse_tile_test_matches_dense_sampling():
+    g = torch.Generator().manual_seed(5)
+    n = 4000
+    mean = torch.rand(n, 2, generator=g, dtype=torch.float64) * 30.0 - 5.0
+    L = torch.randn(n, 2, 2, generator=g, dtype=torch.float64) * 2.0
+    cov = L @ L.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
+    Q = torch.linalg.inv(cov)
+    reach = torch.rand(n, generator=g, dtype=torch.float64) * 10.0 + 0.5
+    ellipse = torch.cat((mean, Q[:, 0, 0:1], Q[:, 0, 1:2], Q[:, 1, 1:2], reach[:, None]), -1)
+    lo = torch.tensor([8.0, 8.0], dtype=torch.float64).expand(n, 2)
+    hi = torch.tensor([15.0, 13.0], dtype=torch.float64).expand(n, 2)
+    got = ellipse_meets_tile(ellipse, lo, hi)
+    # dense sampling of the rectangle (boundary included): the sampled minimum is >= the exact one
+    xs = torch.linspace(8, 15, 141, dtype=torch.float64)
+    ys = torch.linspace(8, 13, 101, dtype=torch.float64)
+    x, y = torch.meshgrid(xs, ys, indexing="ij")
+    d = torch.stack((x.reshape(-1), y.reshape(-1)), -1)[None] - mean[:, None]  # (n, S, 2)
+    f = torch.einsum("nsi,nij,nsj->ns", d, Q, d).amin(1)
+    assert torch.all(got[f <= reach])  # no tile that the ellipse meets is dropped
+    clear = f > reach * 1.02 + 0.05  # safely outside (the sampling step cannot hide a hit)
+    assert not torch.any(got[clear])
+    assert int(got.sum()) > n // 10 and int(clear.sum()) > n // 10  # both cases occur
+
+
+def test_frustum_and_tile_culling_do_not_change_the_image(monkeypatch):
+    dtype = torch.float64
+    cam = RenderCamera(37, 29, 30.0, 30.0, 18.2, 13.9)
+    T_CW = _camera_pose(dtype)
+    means, quats, scales, opac, colors = _random_scene(300, dtype, seed=4)
+    # spread sideways (many outside the image, some near its borders), smaller so that many are culled
+    means, scales = means * torch.tensor([8.0, 8.0, 1.0], dtype=dtype), scales * 0.3
+    settings = RenderSettings(tile_size=8, max_per_tile=1000)
+    rows = frustum_rows(means, scales, T_CW, cam, settings)
+    assert 0 < rows.numel() < 0.6 * means.shape[0]
+    raster = TorchRasterizer(settings)
+    full = raster(means, quats, scales, opac, colors, T_CW, cam)
+    part = raster(*(t[rows] for t in (means, quats, scales, opac, colors)), T_CW, cam)
+    assert torch.equal(full.alpha, part.alpha) and torch.equal(full.color, part.color)
+    assert rows[part.visible].tolist() == full.visible.tolist()
+    # the same image from bounding-box binning alone: the exact tile test only drops pairs with alpha = 0
+    pairs = {}
+    exact_binning = rasterizer_module.bin_gaussians
+
+    def bbox_binning(mean2d, half, depth, camera, s, conic, reach):
+        pairs["exact"] = int(exact_binning(mean2d, half, depth, camera, s, conic, reach).counts.sum())
+        bins = exact_binning(mean2d, half, depth, camera, s)
+        pairs["bbox"] = int(bins.counts.sum())
+        return bins
+
+    monkeypatch.setattr(rasterizer_module, "bin_gaussians", bbox_binning)
+    boxed = raster(means, quats, scales, opac, colors, T_CW, cam)
+    assert torch.allclose(boxed.color, full.color, atol=1e-12)
+    assert torch.allclose(boxed.alpha, full.alpha, atol=1e-12)
+    assert pairs["exact"] < 0.9 * pairs["bbox"]

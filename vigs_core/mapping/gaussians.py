@@ -107,7 +107,9 @@ class GaussianMap:
 
     def select(self, rows: torch.Tensor) -> GaussianMap:
         """The Gaussians at ``rows`` (bool mask (N,) or int64 indices), detached copies."""
-        return GaussianMap(*(getattr(self, f.name).detach()[rows] for f in fields(self)))
+        if rows.dtype == torch.bool:
+            rows = rows.nonzero().squeeze(1)
+        return GaussianMap(*(getattr(self, f.name).detach().index_select(0, rows) for f in fields(self)))
 
     def concat(self, other: GaussianMap) -> GaussianMap:
         """This map followed by ``other`` (detached)."""

@@ -13,7 +13,9 @@ For every new keyframe (image, depth, pose ``T_WC``):
        L = lambda_c |C - C_gt|_1 + lambda_d |D - D_gt|_1 (valid depth only) + lambda_iso |s - mean(s)|_1
 
    (means over pixels; the isotropic term over the visible Gaussians' scales ``s`` (metres) penalises
-   needle-like Gaussians). Poses are fixed: the tracker owns them.
+   needle-like Gaussians). Poses are fixed: the tracker owns them. Each step renders and differentiates
+   only the Gaussians that can reach the view (:func:`vigs_core.mapping.rasterizer.frustum_rows`, the
+   same image as rendering all), so its cost follows the Gaussians in view, not the size of the map.
 3. **Pruning**: Gaussians with opacity below ``prune_min_opacity`` or whose largest standard deviation
    exceeds ``prune_max_angular`` times their distance to their anchor keyframe (oversized) are removed.
 
@@ -45,7 +47,7 @@ from vigs_core.mapping.init import gaussians_from_depth
 from vigs_core.mapping.metrics import psnr, ssim
 from vigs_core.mapping.optimizer import RowAdam
 from vigs_core.mapping.ply import save_map
-from vigs_core.mapping.rasterizer import RenderCamera, RenderOutput, RenderSettings, make_rasterizer
+from vigs_core.mapping.rasterizer import RenderCamera, RenderOutput, RenderSettings, frustum_rows, make_rasterizer
 
 
 @dataclass
@@ -398,11 +400,23 @@ class GaussianMapper:
         else:
             self._move_keyframes(event[1], event[2])
 
-    def _render(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> RenderOutput:
+    def _view(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> tuple[torch.Tensor, ...]:
+        """``T_CW`` of the view and the rows of ``gmap`` in its frustum (:func:`frustum_rows`): only these
+        are activated, rendered and differentiated, so a step costs nothing for the rest of the map."""
         T_CW = se3_inverse(T_WC.to(self.device)).to(gmap.dtype)
+        return T_CW, frustum_rows(gmap.means, gmap.scales(), T_CW, camera, self.rasterizer.settings)
+
+    def _rasterize(self, gmap: GaussianMap, T_CW: torch.Tensor, camera: RenderCamera) -> RenderOutput:
         return self.rasterizer(
             gmap.means, gmap.unit_quats(), gmap.scales(), gmap.opacities(), gmap.colors, T_CW, camera
         )
+
+    def _render(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> RenderOutput:
+        """Render ``gmap`` (no gradient); ``visible`` indexes the rows of ``gmap``."""
+        T_CW, rows = self._view(gmap, T_WC, camera)
+        out = self._rasterize(gmap.select(rows), T_CW, camera)
+        out.visible = rows[out.visible]
+        return out
 
     def _append(self, new: GaussianMap) -> None:
         n = len(new)
@@ -467,30 +481,29 @@ class GaussianMapper:
         c = self.config
         if len(self.map) == 0:
             return
-        params = {k: getattr(self.map, k) for k in PARAMETER_FIELDS}
-        for p in params.values():
-            p.requires_grad_(True)
-        try:
-            out = self._render(self.map, kf.T_WC, self.render_camera)
-            if out.visible.numel() == 0:
-                return
-            loss = c.lambda_color * (out.color - kf.image()).abs().mean()
-            valid = kf.depth > 0
-            n_valid = int(valid.sum())
-            if lambda_depth > 0 and n_valid > 0:
-                # mean over valid pixels, as a masked sum (cheaper than gathering them, same gradient)
-                depth_err = (out.depth - kf.depth).abs_().mul_(valid).sum() / n_valid
-                loss = loss + lambda_depth * depth_err
-            if c.lambda_iso > 0:
-                s = self.map.log_scales.index_select(0, out.visible).exp()
-                loss = loss + c.lambda_iso * (s - s.mean(dim=1, keepdim=True)).abs().mean()
-            loss.backward()
-            self.optimizer.step(params, out.visible)
-            self._dirty[out.visible] = True
-        finally:
-            for p in params.values():
-                p.requires_grad_(False)
-                p.grad = None
+        T_CW, rows = self._view(self.map, kf.T_WC, self.render_camera)
+        # the rows in the frustum as leaf tensors: gradients and Adam only touch the part of the map in view
+        sub = self.map.select(rows)
+        for k in PARAMETER_FIELDS:
+            getattr(sub, k).requires_grad_(True)
+        out = self._rasterize(sub, T_CW, self.render_camera)
+        if out.visible.numel() == 0:
+            return
+        loss = c.lambda_color * (out.color - kf.image()).abs().mean()
+        valid = kf.depth > 0
+        n_valid = int(valid.sum())
+        if lambda_depth > 0 and n_valid > 0:
+            # mean over valid pixels, as a masked sum (cheaper than gathering them, same gradient)
+            depth_err = (out.depth - kf.depth).abs_().mul_(valid).sum() / n_valid
+            loss = loss + lambda_depth * depth_err
+        if c.lambda_iso > 0:
+            s = sub.log_scales.index_select(0, out.visible).exp()
+            loss = loss + c.lambda_iso * (s - s.mean(dim=1, keepdim=True)).abs().mean()
+        loss.backward()
+        touched = rows[out.visible]
+        grads = {k: getattr(sub, k).grad.index_select(0, out.visible) for k in PARAMETER_FIELDS}
+        self.optimizer.step({k: getattr(self.map, k) for k in PARAMETER_FIELDS}, touched, grads)
+        self._dirty[touched] = True
 
     @torch.no_grad()
     def _prune(self) -> None:

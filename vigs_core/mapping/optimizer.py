@@ -67,18 +67,21 @@ class RowAdam:
         self.t[rows] = 0
 
     @torch.no_grad()
-    def step(self, params: dict[str, torch.Tensor], touched: torch.Tensor) -> None:
-        """One Adam update of ``params`` (leaf tensors with ``.grad``) on the rows ``touched`` (int64 (M,))."""
+    def step(self, params: dict[str, torch.Tensor], touched: torch.Tensor, grads: dict[str, torch.Tensor]) -> None:
+        """One Adam update of ``params`` on the rows ``touched`` (int64 (M,)), given the gradients of those
+        rows ``grads[name]`` (M, ...); parameters without an entry in ``grads`` are left as they are."""
         self._ensure(params)
+        for k, g in grads.items():
+            want = (touched.shape[0],) + params[k].shape[1:]
+            if tuple(g.shape) != want:
+                raise ValueError(f"gradient of {k!r} has shape {tuple(g.shape)}, need {want}")
         b1, b2 = self.betas
         self.t[touched] += 1
         t = self.t[touched].to(next(iter(params.values())).dtype)
         c1 = 1.0 - b1**t
         c2 = 1.0 - b2**t
-        for k, p in params.items():
-            if p.grad is None:
-                continue
-            g = p.grad[touched]
+        for k, g in grads.items():
+            p = params[k]
             m = self.m[k][touched].mul_(b1).add_(g, alpha=1.0 - b1)
             v = self.v[k][touched].mul_(b2).addcmul_(g, g, value=1.0 - b2)
             self.m[k][touched] = m
