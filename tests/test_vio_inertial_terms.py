@@ -175,3 +175,37 @@ def test_imu_fixes_translation_under_pure_rotation():
     err = lambda T: float((se3_inverse(T)[:, :3, 3] - sc.T_wc[:, :3, 3]).norm(dim=-1).max())  # noqa: E731
     assert err(vi.poses) < 1e-3
     assert err(vi.poses) < 0.1 * err(vis.poses)
+
+
+def test_held_depth_keeps_the_window_scale_when_one_interval_contradicts_the_imu():
+    """The metric VI odometry's window (one fixed keyframe with anchored velocity and bias) where the images of
+    one interval disagree with the IMU (a ground-truth position jump the IMU never felt; here the IMU's position
+    delta of interval 2 is off by 10 cm instead). With every disparity free, vision is blind to scale and the
+    cheapest explanation rescales the whole window; holding the fixed keyframe's depth
+    (``VioConfig.metric_hold_fixed_disparity``) keeps the scale and confines the error."""
+    sc = make_scenario(n=6, spacing_s=0.3, seed=2)
+    T_true = se3_inverse(sc.T_wc)
+    disps, coords, edges = visual_problem(T_true)
+    pre = preintegrate_between(sc.imu, sc.stamps_ns, NOISE)
+    step = pre.delta_p[2] / pre.delta_p[2].norm()
+    pre.delta_p[2] = pre.delta_p[2] - 0.1 * step
+    fixed = torch.zeros(6, dtype=torch.bool)
+    fixed[0] = True
+    biases = torch.zeros(6, 6, **F64)
+    anchor_std = torch.tensor([1e-3] * 3 + [1e-2] * 3, **F64)
+    anchor = AnchorPrior(fixed, sc.velocities.clone(), biases.clone(), 0.01, anchor_std)
+    terms = InertialTerms(pre, T_CB, weight=0.03, anchor=anchor)
+    state0 = InertialState(sc.velocities.clone(), biases, torch.eye(3, **F64), torch.zeros((), **F64))
+    p_true = sc.T_wc[:, :3, 3]
+
+    def scale(res):   # of the window seen from the fixed keyframe
+        p = se3_inverse(res.poses)[:, :3, 3]
+        return float((p[1:] - p[0]).norm(dim=-1).sum() / (p_true[1:] - p_true[0]).norm(dim=-1).sum())
+
+    cfg = BAConfig(iterations=30, huber_delta=2.0)
+    free = bundle_adjust(T_true.clone(), disps.clone(), edges, coords, INTR, fixed, cfg, extra=terms,
+                         extra_state=state0)
+    held = bundle_adjust(T_true.clone(), disps.clone(), edges, coords, INTR, fixed, cfg, extra=terms,
+                         extra_state=state0, fixed_disparity=fixed)
+    assert abs(scale(free) - 1.0) > 0.05                              # measured 8.6%
+    assert abs(scale(held) - 1.0) < 0.3 * abs(scale(free) - 1.0)      # measured 2.2%

@@ -158,6 +158,35 @@ def test_estimator_predicts_only_once_metric():
 
 
 
+def test_scale_refinement_rescales_a_metric_map_once():
+    """A metric, gravity-aligned map whose scale is 4% off (as a window's scale when the depth starts being held):
+    ``metric_hold_delay_s`` after the alignment the inertial-only refit over the keyframes since then returns the
+    correcting alignment and the velocities in the corrected world; it runs once."""
+    sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
+                       imu_noise=True)
+    T_wc = sc.T_wc.clone()
+    T_wc[:, :3, 3] *= 1.04
+    T_cw = se3_inverse(T_wc)
+    est = VisualInertialEstimator(VioConfig(scale_refinement=True, metric_hold_delay_s=2.0), sc.imu, NOISE, T_BC)
+    for k in range(20):
+        est.add_keyframe(k, int(sc.stamps_ns[k]))
+    assert not est.refinement_due(int(sc.stamps_ns[-1]))           # not metric yet
+    est.initializer.stage = Stage.VISUAL_INERTIAL                   # as after an alignment at keyframe 5
+    est.metric_since_ns = int(sc.stamps_ns[5])
+    assert not est.refinement_due(int(sc.stamps_ns[8]))             # 0.9 s after the alignment
+    assert est.refinement_due(int(sc.stamps_ns[-1]))
+    al = est.refine_scale(list(range(20)), sc.stamps_ns, T_cw)
+    assert al is not None and abs(al.scale * 1.04 - 1.0) < 0.01
+    assert math.degrees(math.acos(min(1.0, float(al.R[2, 2])))) < 1.0   # gravity stays along -z
+    assert (est.states[12].velocity - sc.velocities[12]).norm() < 0.05
+    assert est.scale_history[-1]["stage"] == "refinement"
+    assert not est.refinement_due(int(sc.stamps_ns[-1]))            # once
+    off = VisualInertialEstimator(VioConfig(metric_hold_delay_s=2.0), sc.imu, NOISE, T_BC)   # off by default
+    off.initializer.stage = Stage.VISUAL_INERTIAL
+    off.metric_since_ns = int(sc.stamps_ns[5])
+    assert not off.refinement_due(int(sc.stamps_ns[-1]))
+
+
 def test_keyframes_outside_the_imu_stay_vision_only():
     sc = make_scenario(n=22, spacing_s=0.3)
     T_cw = se3_inverse(sc.T_wc)

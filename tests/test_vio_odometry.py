@@ -150,3 +150,32 @@ def test_still_start_at_low_frame_rate_does_not_initialise_on_noise(room_sequenc
     assert odo.report()["held_still_frames"] == 16
     vo = _run(DenseOdometry(intr, W, H, OdometryConfig()), slow, still)
     assert not vo.initialized and len(vo.keyframes) == 0
+
+
+def test_metric_windows_hold_the_fixed_keyframes_depth(room_sequence, monkeypatch):
+    """Once metric (here at once: ``metric_hold_delay_s`` 0) every BA of the sliding window holds the fixed
+    keyframe's disparities, none before; the trajectory stays metric."""
+    import vigs_core.frontend.odometry as frontend
+    stamps, images, imu, T_wb, _ = room_sequence
+    calls = []
+
+    def recording(*args, **kwargs):
+        calls.append((odo.vio.metric, kwargs.get("fixed_disparity")))
+        return bundle_adjust(*args, **kwargs)
+
+    bundle_adjust = frontend.bundle_adjust
+    monkeypatch.setattr(frontend, "bundle_adjust", recording)
+    vio = VioConfig(vision_only_keyframes=5, inertial_init_keyframes=10, metric_hold_delay_s=0.0)
+    odo = VisualInertialOdometry(Intrinsics(FX, FX, CX, CY), W, H, imu, NOISE, T_BC, OdometryConfig(), vio)
+    _run(odo, stamps, images)
+    assert odo.vio.metric
+    metric = [hold for is_metric, hold in calls if is_metric]
+    assert len(metric) > 5 and all(h is not None and int(h.sum()) == 1 and bool(h[0]) for h in metric)
+    assert all(hold is None for is_metric, hold in calls if not is_metric)
+    t, T_cw = odo.final_frame_poses()
+    p = (torch.linalg.inv(T_cw) @ torch.linalg.inv(T_BC))[:, :3, 3].numpy()   # body positions
+    gt = T_wb[_nearest(stamps, t * 1e-9), :3, 3]
+    s, R, tr = umeyama(p, gt, with_scale=True)
+    _, R1, t1 = umeyama(p, gt, with_scale=False)
+    assert abs(s - 1.0) < 0.05
+    assert np.sqrt((((p @ R1.T + t1) - gt) ** 2).sum(1).mean()) < 0.1

@@ -58,9 +58,40 @@ class VioConfig:
             (:class:`~vigs_core.imu.inertial_init.InertialInitConfig` ``bias_random_walk``) instead of one
             bias for its window.
         scheme: preintegration scheme (see :mod:`vigs_core.imu.preintegration`).
-        metric_fixed_keyframes: once the map is metric, this many oldest window keyframes are held fixed in BA
-            (1: rotation and position gauge only, the IMU observes the scale; 0 keeps the frame graph's count).
-        anchor_velocity_std: once metric, the velocities of the window's fixed keyframes are held at their last
+        marginalize: once the map is metric, a keyframe leaving the BA window is marginalised into a Gaussian
+            prior on the window's remaining poses, velocities and biases (:mod:`vigs_core.vio.marginalization`),
+            and BA holds no keyframe fixed (the prior carries the gauge and the window's scale and velocity
+            information). Off (default): ``metric_fixed_keyframes`` fixed keyframes with the anchor prior and
+            the held depth. First 60 s of hybrid MH_03: SE(3) ATE 21.2 cm with it, 20.6 cm with the fixed keyframe
+            and free depth, 11.8 cm with the held depth; the prior keeps the IMU's scale information, but the
+            window's scale is then the IMU's alone, which on this sequence swings by 5% within seconds.
+        marginalize_visual: the marginalisation includes the departing keyframe's hosted visual edges (its
+            disparities eliminated); off, only its inertial factor and priors.
+        metric_fixed_keyframes: without ``marginalize`` (and until the first marginalisation): once the map is
+            metric, this many oldest window keyframes are held fixed in BA (1: rotation and position gauge only,
+            the IMU observes the scale; 0 keeps the frame graph's count).
+        metric_hold_fixed_disparity: once metric (after ``metric_hold_delay_s``), BA holds the disparities of
+            the window's fixed keyframe as well as its pose, so its depth map carries the window's scale from one
+            window to the next (with them free, vision is blind to the scale inside the window, whose scale is then
+            the IMU's alone: on hybrid MH_03 the scale of 8-keyframe windows swung between 0.90 and 1.13 within
+            seconds, and an interval whose images contradict the IMU is cheapest explained by rescaling the whole
+            window). First 60 s of hybrid MH_03 (HEAD 666b83e + this change): SE(3) ATE 20.6 -> 12.9 cm, Sim(3)
+            19.2 -> 5.7 cm. Not applied with ``marginalize`` (no keyframe is fixed there).
+        metric_hold_delay_s: seconds after the map became metric before the depth is held: the held depth keeps
+            whatever scale the window has, so the IMU first corrects the inertial-only stage's scale with the
+            depth free (first 60 s of hybrid V2_01: 0 s froze a 3.6% scale error, SE(3) ATE 9.0 cm; 10 s: 0.2%,
+            4.0 cm; MH_03: 11.8 / 12.9 cm).
+        scale_refinement: at the first keyframe ``metric_hold_delay_s`` after the alignment, re-estimate the
+            gravity direction and scale inertial-only over the keyframes since the alignment (poses fixed, the
+            initialisation's trust limits) and rescale the whole map once (ORB-SLAM3's scale refinement,
+            :meth:`~vigs_core.vio.estimator.VisualInertialEstimator.refine_scale`), so the depth is held at that
+            scale rather than at the window's of that moment. Off by default: first 60 s of hybrid MH_03, refined
+            scale 0.976 (std 0.9%), SE(3) ATE 12.9 -> 8.3 cm; but V2_01, 0.973 (std 1.1%) on a map whose scale
+            was right, 4.0 -> 5.6 cm (the inertial-only scale of a few seconds is only good to a few percent).
+            Whole length, stride 1: V1_01 3.20 -> 2.59 cm, V2_01 4.07 -> 4.93 cm (recall@10cm 96.2 -> 91.7%,
+            stride 10 95.1 -> 89.8%), MH_03 15.5 -> 9.0 cm.
+        anchor_velocity_std: without ``marginalize`` (and at the first marginalisation, for the keyframe that
+            was fixed): once metric, the velocities of the window's fixed keyframes are held at their last
             estimate with this standard deviation, m/s (the inertial counterpart of fixing their poses; 0 = off).
         anchor_bias_gyro_std: same for their gyroscope biases, rad/s.
         anchor_bias_acc_std: same for their accelerometer biases, m/s^2.
@@ -86,7 +117,12 @@ class VioConfig:
     max_init_gravity_std_deg: float = 2.0
     init_bias_random_walk: bool = True
     scheme: str = "closed_form"
+    marginalize: bool = False
+    marginalize_visual: bool = True
     metric_fixed_keyframes: int = 1
+    metric_hold_fixed_disparity: bool = True
+    metric_hold_delay_s: float = 10.0
+    scale_refinement: bool = False
     anchor_velocity_std: float = 0.01
     anchor_bias_gyro_std: float = 1e-3
     anchor_bias_acc_std: float = 1e-2

@@ -11,8 +11,10 @@ predicts new frames from the IMU (:mod:`vigs_core.vio.keyframe_init`) and runs t
     predict(ref_id, T_cw_ref, t_ns)             # IMU prior for a frame (None before initialisation)
     predict_rotation(ref_id, T_cw_ref, t_ns)    # gyro-only rotation prior before initialisation
     terms(ids, poses) -> (terms, state) | None  # inertial terms of a BA window (pass to bundle_adjust)
+    marginalize(ids, poses, visual)             # the oldest keyframe leaves the window (once metric)
     update(ids, state)                          # store the BA's velocities and biases
     on_keyframe(ids, stamps, poses) -> WorldAlignment | None   # after the keyframe's BA; apply it to the map
+    refine_scale(ids, stamps, poses) -> WorldAlignment | None  # once, ``metric_hold_delay_s`` after the alignment
 """
 from __future__ import annotations
 
@@ -21,12 +23,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from vigs_core.geometry import se3_inverse
+from vigs_core.imu.inertial_init import inertial_only_init
 from vigs_core.imu.preintegration import Preintegrated, preintegrate, stack_preintegrated
 from vigs_core.types import ImuNoise, ImuSamples
 from vigs_core.vio.config import VioConfig
-from vigs_core.vio.inertial_terms import AnchorPrior, InertialState, InertialTerms
-from vigs_core.vio.initialization import Stage, StagedInitializer, WorldAlignment, gravity_from_accelerometer
+from vigs_core.vio.inertial_terms import AnchorPrior, InertialState, InertialTerms, MarginalPrior
+from vigs_core.vio.initialization import (Stage, StagedInitializer, WorldAlignment, alignment_from_gravity,
+                                          gravity_from_accelerometer)
 from vigs_core.vio.keyframe_init import KeyframePrediction, predict_keyframe
+from vigs_core.vio.marginalization import marginalize_keyframe
 
 F64 = torch.float64
 
@@ -61,9 +67,13 @@ class VisualInertialEstimator:
         self.log_scale = 0.0
         self.scale_history: list[dict] = []
         self.alignment: WorldAlignment | None = None
+        self.metric_since_ns: int | None = None   # stamp of the keyframe at which the map became metric
+        self.scale_refined = False
         self.imu_predictions = 0
         self.fallbacks = 0
         self._pre: dict[tuple[int, int], Preintegrated] = {}
+        self.marginal: MarginalPrior | None = None
+        self.marginalized = 0
 
     # ------------------------------------------------------------------ queries
     @property
@@ -82,6 +92,12 @@ class VisualInertialEstimator:
     def imu_covers(self, t0_ns: int, t1_ns: int) -> bool:
         """True when the IMU samples bracket ``[t0_ns, t1_ns]`` (keyframes outside stay vision-only)."""
         return len(self.imu) >= 2 and int(self.imu.t_ns[0]) <= t0_ns and int(self.imu.t_ns[-1]) >= t1_ns
+
+    def prior_holds_gauge(self, ids: list[int]) -> bool:
+        """True when the BA of window ``ids`` gets a marginalisation prior (it then fixes no keyframe)."""
+        return (self.metric and self.marginal is not None and len(ids) >= 2
+                and set(self.marginal.ids) <= set(ids)
+                and self.imu_covers(self.states[ids[0]].t_ns, self.states[ids[-1]].t_ns))
 
     def bias_of(self, kf_id: int) -> torch.Tensor:
         """(6,) bias of a keyframe (the global one without per-keyframe biases)."""
@@ -150,8 +166,9 @@ class VisualInertialEstimator:
               anchored: set[int] | None = None) -> tuple[InertialTerms, InertialState] | None:
         """Inertial terms and state of a BA window of consecutive keyframes ``ids`` (oldest first), or None
         when no inertial terms apply (vision-only stage, fusion off, fewer than two keyframes, no IMU data over
-        the window). Once metric, the keyframes in ``anchored`` (the window's fixed ones) keep their velocity and
-        bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
+        the window). Once metric, the window gets the marginalisation prior when one exists
+        (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the window's fixed ones) keep their
+        velocity and bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
             return None
@@ -162,17 +179,44 @@ class VisualInertialEstimator:
         prior = torch.tensor([c.bias_prior_gyro_std] * 3 + [c.bias_prior_acc_std] * 3, dtype=F64)
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
-        anchor = None
-        if self.metric and anchored and c.anchor_velocity_std > 0:
+        anchor, marginal, index = None, None, None
+        if self.prior_holds_gauge(ids):
+            marginal, index = self.marginal, [ids.index(k) for k in self.marginal.ids]
+        elif self.metric and anchored and c.anchor_velocity_std > 0:
             mask = torch.tensor([k in anchored for k in ids])
             all_biases = torch.stack([self.bias_of(k) for k in ids])
             bias_std = torch.tensor([c.anchor_bias_gyro_std] * 3 + [c.anchor_bias_acc_std] * 3, dtype=F64)
             anchor = AnchorPrior(mask, vel.clone(), all_biases, c.anchor_velocity_std, bias_std)
         terms = InertialTerms(pre, self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias,
                               estimate_gravity=joint, estimate_scale=joint, gravity=c.gravity,
-                              weight=c.inertial_weight, bias_prior_std=prior, anchor=anchor)
+                              weight=c.inertial_weight, bias_prior_std=prior, anchor=anchor, marginal=marginal,
+                              marginal_index=index)
         state = InertialState(vel, biases.clone(), self.R_wg.clone(), torch.tensor(self.log_scale, dtype=F64))
         return terms, state
+
+    def marginalize(self, ids: list[int], poses: torch.Tensor,
+                    visual: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+        """Keyframe ``ids[0]`` leaves the window ``ids`` (consecutive, oldest first, world->camera ``poses``
+        (N, 4, 4) at the current estimate): fold its inertial factor to ``ids[1]``, its bias prior, the reduced
+        camera system ``visual`` of its hosted edges and the current prior into the prior over ``ids[1:]``
+        (:mod:`vigs_core.vio.marginalization`). Only once metric with ``marginalize`` on; without IMU data over
+        the interval the prior is dropped (the window then falls back to a fixed keyframe and the anchor)."""
+        c = self.config
+        if not (c.enabled and c.marginalize and self.metric) or len(ids) < 2:
+            return
+        if not self.imu_covers(self.states[ids[0]].t_ns, self.states[ids[1]].t_ns):
+            self.marginal = None
+            return
+        vel = torch.stack([self.states[k].velocity for k in ids])
+        biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
+        bias_std = torch.tensor([c.bias_prior_gyro_std] * 3 + [c.bias_prior_acc_std] * 3, dtype=F64)
+        anchor_std = torch.tensor([c.anchor_bias_gyro_std] * 3 + [c.anchor_bias_acc_std] * 3, dtype=F64)
+        self.marginal = marginalize_keyframe(
+            self.marginal, list(ids), poses, vel, biases, stack_preintegrated([self.preintegration(ids[0], ids[1])]),
+            self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias, gravity=c.gravity,
+            weight=c.inertial_weight, bias_prior_std=bias_std, visual=visual,
+            anchor_std=(c.anchor_velocity_std, anchor_std))
+        self.marginalized += 1
 
     def update(self, ids: list[int], state: InertialState) -> None:
         """Store the velocities, biases (and joint gravity/scale) a BA returned for window ``ids``."""
@@ -218,6 +262,42 @@ class VisualInertialEstimator:
                 return alignment
         return None
 
+    def refinement_due(self, t_ns: int) -> bool:
+        """True when the scale refinement should run at a keyframe at ``t_ns`` (``scale_refinement`` on, metric
+        for ``metric_hold_delay_s``, not yet run)."""
+        c = self.config
+        return (c.enabled and c.scale_refinement and self.metric and not self.scale_refined
+                and (int(t_ns) - self.metric_since_ns) * 1e-9 >= c.metric_hold_delay_s)
+
+    def refine_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
+        """Scale refinement (as ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C): the inertial-only problem of
+        the initialisation (:func:`~vigs_core.imu.inertial_init.inertial_only_init`: gravity direction, scale,
+        velocities and biases with the poses fixed) over the keyframes since the map became metric (ids (K,),
+        stamps (K,) ns, world->camera poses (K, 4, 4) of ALL keyframes), i.e. seconds of joint VI-BA poses
+        instead of the vision-only stage's. Runs once; returns the alignment the caller must apply to the whole
+        map (velocities here are already updated), or None when the solution is not trustworthy (limits of the
+        initialisation) or not computable. The biases stay the VI-BA's."""
+        self.scale_refined = True
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0]
+        if len(sel) < 3 or not self.imu_covers(int(stamps_ns[sel[0]]), int(stamps_ns[sel[-1]])):
+            return None
+        try:
+            res = inertial_only_init(se3_inverse(poses[sel].to(F64)), stamps_ns[sel], self.imu, self.noise,
+                                     self.T_cb, self.initializer.inertial_config())
+        except torch.linalg.LinAlgError:
+            return None
+        self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "refinement",
+                                   "scale": res.scale, "log_scale_std": res.log_scale_std,
+                                   "trustworthy": res.trustworthy})
+        if not res.trustworthy:
+            return None
+        alignment = alignment_from_gravity(res.R_wg, res.log_scale)
+        refit = {ids[n]: res.velocities[m] for m, n in enumerate(sel)}
+        for k in ids:
+            self.states[k].velocity = alignment.velocity(refit.get(k, self.states[k].velocity))
+        return alignment
+
     def _start_joint(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> None:
         """Without staging: gravity from the accelerometer, scale 1, velocities by finite differences."""
         T_wc = torch.linalg.inv(poses.to(F64))
@@ -235,6 +315,8 @@ class VisualInertialEstimator:
 
     def _finish(self, alignment: WorldAlignment, t_ns: int, keyframes: int) -> None:
         self.alignment = alignment
+        self.metric_since_ns = t_ns
+        self.marginal = None
         self.R_wg = torch.eye(3, dtype=F64)
         self.log_scale = 0.0
         self._pre.clear()
@@ -254,4 +336,5 @@ class VisualInertialEstimator:
             "bias_acc": None if last is None else [float(x) for x in self.bias_of(max(self.states))[3:]],
             "imu_predictions": self.imu_predictions,
             "imu_prediction_fallbacks": self.fallbacks,
+            "marginalized_keyframes": self.marginalized,
         }

@@ -5,10 +5,12 @@ For the ``n`` keyframes of the window (consecutive in time) the terms add, per i
 inertial residual of VIGS-SLAM Eq. (2)-(3) (:func:`vigs_core.imu.residual.inertial_residual`: rotation,
 velocity, position and bias smoothness ``b_{k+1} - b_k``) weighted by the inverse preintegration covariance,
 plus a zero-mean prior on every bias state and, optionally, an anchor prior holding the velocity and bias of
-the window's fixed keyframes (:class:`AnchorPrior`)::
+the window's fixed keyframes (:class:`AnchorPrior`) and a marginalisation prior on states of the window that
+carries the information of the keyframes that left it (:class:`MarginalPrior`)::
 
     cost = 1/2 w sum_k r_k^T Cov_k^-1 r_k  +  1/2 sum_b |b / sigma_prior|^2
            + 1/2 sum_{k anchored} (|v_k - v_k^0|^2 / sigma_v^2 + |b_k - b_k^0|^2 / sigma_b^2)
+           + 1/2 delta^T H_p delta - g_p^T delta + c_p,      delta = x [-] x_lin (marginalisation prior)
 
 Extra state layout (appended after the ``6n`` pose columns of the reduced camera system)::
 
@@ -29,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from vigs_core.geometry import se3_adjoint, se3_inverse, so3_exp
+from vigs_core.geometry import se3_adjoint, se3_inverse, se3_left_jacobian_inv, se3_log, so3_exp
 from vigs_core.imu.preintegration import Preintegrated
 from vigs_core.imu.residual import InertialResidual, inertial_residual
 
@@ -69,6 +71,63 @@ class AnchorPrior:
     bias_std: torch.Tensor
 
 
+def state_columns(index: list[int], n: int, estimate_bias: bool, per_keyframe_bias: bool) -> torch.Tensor:
+    """Columns of the keyframes at window positions ``index`` in the layout over ``n`` keyframes
+    ``[xi (6n) | v (3n) | biases]`` (module docstring; no gravity or scale): their poses, then their
+    velocities, then their biases (all 6 columns of a global bias)."""
+    idx = torch.as_tensor(index, dtype=torch.long)
+    a = torch.arange
+    cols = [(6 * idx[:, None] + a(6)).reshape(-1), (6 * n + 3 * idx[:, None] + a(3)).reshape(-1)]
+    if estimate_bias:
+        cols.append((9 * n + 6 * idx[:, None] + a(6)).reshape(-1) if per_keyframe_bias else 9 * n + a(6))
+    return torch.cat(cols)
+
+
+@dataclass
+class MarginalPrior:
+    """Gaussian prior on window states left by marginalising keyframes out of the window (Schur complement of the
+    linearised factors of the departing keyframe; :func:`vigs_core.vio.marginalization.marginalize_keyframe`).
+
+    Over the prior's ``K`` keyframes its state ``delta`` has the layout of :class:`InertialTerms` over ``K``
+    keyframes without gravity and scale, ``[xi (6K) | v (3K) | biases (6K per keyframe, 6 global, 0)]``, with
+    ``delta`` the difference from the linearisation point: ``xi_k = Log(T_cw,k T_cw,k^lin^-1)`` (left
+    perturbation of the world->camera pose, translation first), ``v - v^lin``, ``b - b^lin``. The cost is
+
+        c(delta) = 1/2 delta^T H delta - g^T delta + c0,   c0 = 1/2 g^T H^+ g   (minimum 0),
+
+    so the solver's gradient and Hessian are ``A^T (g - H delta)`` and ``A^T H A`` with ``A`` the Jacobian of
+    ``delta`` by the solver's increments: ``J_l^-1(xi_k)`` for the poses (``Exp(e) Exp(xi) = Exp(xi + J_l^-1(xi) e
+    + O(e^2))``), identity for velocities and biases (first-estimate linearisation: ``H`` and ``g`` stay those
+    of the marginalisation point, only ``delta`` moves).
+
+    Attributes:
+        ids: keyframe ids of the prior's ``K`` keyframes (ascending); poses (K, 4, 4), velocities (K, 3) and
+            biases (K, 6) per keyframe or (1, 6) global, or (0, 6) not estimated: the linearisation point;
+        H: (D, D) information; g: (D,) gradient at the linearisation point; c0: constant of the cost.
+    """
+
+    ids: list[int]
+    poses: torch.Tensor
+    velocities: torch.Tensor
+    biases: torch.Tensor
+    H: torch.Tensor
+    g: torch.Tensor
+    c0: float
+
+    def delta(self, poses: torch.Tensor, velocities: torch.Tensor, biases: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``delta`` (D,) at the given states of the prior's keyframes (poses (K, 4, 4), velocities (K, 3),
+        biases like :attr:`biases`) and the pose tangents' inverse left Jacobians (K, 6, 6)."""
+        xi = se3_log(poses.to(torch.float64) @ se3_inverse(self.poses))
+        d = torch.cat((xi.reshape(-1), (velocities - self.velocities).reshape(-1),
+                       (biases - self.biases).reshape(-1)))
+        return d, se3_left_jacobian_inv(xi)
+
+    def cost(self, delta: torch.Tensor) -> torch.Tensor:
+        """``1/2 delta^T H delta - g^T delta + c0`` (scalar)."""
+        return 0.5 * delta @ (self.H @ delta) - self.g @ delta + self.c0
+
+
 class InertialTerms:
     """Inertial factors between consecutive window keyframes (see the module docstring).
 
@@ -84,12 +143,14 @@ class InertialTerms:
         weight: multiplies the inertial information matrices.
         bias_prior_std: (6,) standard deviations of the zero-mean bias prior (rad/s x3, m/s^2 x3).
         anchor: optional :class:`AnchorPrior` on the velocities (and per-keyframe biases) of anchored keyframes.
+        marginal: optional :class:`MarginalPrior`; ``marginal_index`` (K,) the window positions of its keyframes.
     """
 
     def __init__(self, pre: Preintegrated, T_cb: torch.Tensor, *, estimate_bias: bool = True,
                  per_keyframe_bias: bool = True, estimate_gravity: bool = False, estimate_scale: bool = False,
                  gravity: float = 9.81, weight: float = 1.0, bias_prior_std: torch.Tensor | None = None,
-                 anchor: AnchorPrior | None = None) -> None:
+                 anchor: AnchorPrior | None = None, marginal: MarginalPrior | None = None,
+                 marginal_index: list[int] | None = None) -> None:
         if pre.delta_R.dim() != 3:
             raise ValueError(f"InertialTerms needs a batched Preintegrated (B, 3, 3), got {tuple(pre.delta_R.shape)}")
         self.pre = pre
@@ -109,12 +170,28 @@ class InertialTerms:
         prior = torch.tensor([0.1] * 3 + [0.5] * 3, **f) if bias_prior_std is None else bias_prior_std.to(**f)
         self.prior_info = prior ** -2
         self.anchor = anchor
+        self.marginal = marginal
         n_bias = (6 * self.n if per_keyframe_bias else 6) if estimate_bias else 0
         self.off_vel = 6 * self.n
         self.off_bias = self.off_vel + 3 * self.n
         self.off_grav = self.off_bias + n_bias
         self.off_scale = self.off_grav + (2 if estimate_gravity else 0)
         self.dim = self.off_scale + (1 if estimate_scale else 0) - 6 * self.n
+        if marginal is not None:
+            self._marginal_setup(marginal, marginal_index)
+
+    def _marginal_setup(self, prior: MarginalPrior, index: list[int] | None) -> None:
+        """Solver columns of the prior's state and a check that its layout matches these terms."""
+        K = len(prior.ids)
+        if index is None or len(index) != K or not all(0 <= i < self.n for i in index):
+            raise ValueError(f"InertialTerms: a MarginalPrior over {K} keyframes needs their window positions "
+                             f"(0..{self.n - 1}), got {index}")
+        kb = (6 * K if self.per_keyframe_bias else 6) if self.estimate_bias else 0
+        if prior.biases.numel() != kb or prior.H.shape != (9 * K + kb, 9 * K + kb):
+            raise ValueError(f"InertialTerms: MarginalPrior biases {tuple(prior.biases.shape)} / H "
+                             f"{tuple(prior.H.shape)} do not match the terms' bias layout")
+        self._marginal_cols = state_columns(index, self.n, self.estimate_bias, self.per_keyframe_bias)
+        self._marginal_index = torch.as_tensor(index, dtype=torch.long)
 
     # ------------------------------------------------------------------ evaluation
     def _check(self, poses: torch.Tensor, state: InertialState) -> None:
@@ -164,10 +241,21 @@ class InertialTerms:
             cost = cost + 0.5 * ((info_v * r_v ** 2).sum() + (info_b * r_b ** 2).sum())
         return cost
 
+    def _marginal_delta(self, poses: torch.Tensor, state: InertialState) -> tuple[torch.Tensor, torch.Tensor]:
+        m, idx = self.marginal, self._marginal_index
+        if not self.estimate_bias:
+            b = state.biases[:0]
+        else:
+            b = state.biases[idx] if self.per_keyframe_bias else state.biases
+        return m.delta(poses[idx], state.velocities[idx], b)
+
     def cost(self, poses: torch.Tensor, state: InertialState) -> torch.Tensor:
-        """``1/2 w sum r^T Cov^-1 r`` plus the bias prior (scalar)."""
+        """``1/2 w sum r^T Cov^-1 r`` plus the bias, anchor and marginalisation priors (scalar)."""
         r = self._residual_vector(self.evaluate(poses, state))
-        return 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
+        cost = 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
+        if self.marginal is not None:
+            cost = cost + self.marginal.cost(self._marginal_delta(poses, state)[0])
+        return cost
 
     def jacobian(self, poses: torch.Tensor, state: InertialState) -> tuple[torch.Tensor, torch.Tensor]:
         """Residuals (n-1, m) and their Jacobian (n-1, m, 6n + dim) in the solver's parameterisation
@@ -227,6 +315,16 @@ class InertialTerms:
                 H[sl, sl] += torch.diag((m[:, None] * info_b).reshape(-1))
                 g[sl] -= (info_b * r_b).reshape(-1)
         cost = 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
+        if self.marginal is not None:
+            d, Jl_inv = self._marginal_delta(poses, state)
+            A = torch.eye(d.shape[0], dtype=torch.float64, device=d.device)
+            K = Jl_inv.shape[0]
+            A[:6 * K, :6 * K] = torch.block_diag(*Jl_inv)
+            Hm = self.marginal.H
+            c = self._marginal_cols
+            H[c[:, None], c[None, :]] += A.T @ Hm @ A
+            g[c] += A.T @ (self.marginal.g - Hm @ d)
+            cost = cost + self.marginal.cost(d)
         return H.to(poses.dtype), g.to(poses.dtype), cost
 
     def retract(self, state: InertialState, delta: torch.Tensor) -> InertialState:

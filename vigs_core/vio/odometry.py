@@ -17,7 +17,14 @@
   when frames are far apart (frame stride);
 * once metric, BA holds only ``metric_fixed_keyframes`` (default 1) window keyframes fixed: the inertial terms
   make the scale observable, so it is no longer pinned by a second fixed keyframe; the fixed keyframes also keep
-  their velocity and bias (anchor prior), so a window cannot trade the scale against velocities and biases;
+  their velocity and bias (anchor prior), so a window cannot trade the scale against velocities and biases, and
+  (``metric_hold_fixed_disparity``) their disparities, so the depth map carries the scale between windows;
+* optionally (``scale_refinement``), ``metric_hold_delay_s`` after the alignment, when the depth starts being
+  held, the scale and gravity direction are re-estimated once inertial-only over the keyframes since the
+  alignment and the whole map is rescaled (:meth:`VisualInertialEstimator.refine_scale`);
+* alternatively (``marginalize``), a keyframe leaving the window once metric is marginalised into a Gaussian
+  prior on the remaining keyframes' poses, velocities and biases (:mod:`vigs_core.vio.marginalization`) and BA
+  holds no keyframe fixed;
 
 Still start: a monocular front end cannot initialise without parallax, so a platform standing still would get
 no pose at all. While the front end has not initialised and the frame's mean flow from the first frame stays
@@ -39,7 +46,8 @@ from vigs_core.frontend.odometry import DenseOdometry, Keyframe, OdometryConfig
 from vigs_core.imu.preintegration import preintegrate
 from vigs_core.imu.propagation import ImuState, predict_state
 from vigs_core.geometry import se3_inverse
-from vigs_core.solver import BAResult, Intrinsics
+from vigs_core.solver import BAResult, EdgeSet, Intrinsics
+from vigs_core.solver.normal_equations import linearize_visual, schur_reduce
 from vigs_core.types import ImuNoise, ImuSamples
 from vigs_core.vio.config import VioConfig
 from vigs_core.vio.estimator import VisualInertialEstimator
@@ -87,15 +95,63 @@ class VisualInertialOdometry(DenseOdometry):
             self.vio.update(ids, result.extra_state)
 
     def _holds_scale_gauge(self) -> bool:
-        """With IMU fusion the scale is the inertial stages' to fix, so the fixed keyframes' disparities stay free
-        (holding them in the vision-only stage tilted the gravity alignment of tests/test_vio_odometry.py's room
-        sequence from 1.4 to 2.8 deg)."""
-        return self.config.hold_fixed_disparity and not self.vio_config.enabled
+        """Before the map is metric the scale is the inertial stages' to fix, so the fixed keyframes' disparities
+        stay free (holding them in the vision-only stage tilted the gravity alignment of tests/test_vio_odometry.py's
+        room sequence from 1.4 to 2.8 deg). Once metric, from ``metric_hold_delay_s`` after the alignment on, they
+        are held with ``metric_hold_fixed_disparity``: the fixed keyframe's depth map carries the window's scale
+        from one window to the next (see that option)."""
+        c = self.vio_config
+        if not c.enabled:
+            return self.config.hold_fixed_disparity
+        if not (self.vio.metric and c.metric_hold_fixed_disparity):
+            return False
+        t_ns = self.keyframes[self.graph.keyframes[-1]].t_ns
+        return (t_ns - self.vio.metric_since_ns) * 1e-9 >= c.metric_hold_delay_s
+
+    def _insert_into_graph(self, kf: Keyframe) -> list[tuple[int, int]]:
+        """Insert as the front end does; a keyframe that leaves the window is marginalised (once metric)."""
+        before, edges = list(self.graph.keyframes), dict(self.edges)
+        new_edges = super()._insert_into_graph(kf)
+        for k in [k for k in before if k not in self.graph.keyframes]:
+            window = [x for x in before if x >= k]
+            self._marginalize(window, {e: c for e, c in edges.items() if e[0] == k and e[1] in window})
+        return new_edges
+
+    def _edge_system(self, window: list[int], edges: dict):
+        """Linearised visual terms (float64, :func:`~vigs_core.solver.normal_equations.linearize_visual`) of
+        ``edges`` {(i, j): correspondences} over the keyframes ``window`` at their current estimate."""
+        index = {k: n for n, k in enumerate(window)}
+        es = sorted(edges)
+        edge_set = EdgeSet(torch.tensor([index[i] for i, _ in es]), torch.tensor([index[j] for _, j in es]),
+                           torch.from_numpy(np.stack([edges[e].target for e in es])),
+                           torch.stack([self._weights(edges[e]) for e in es]))
+        poses = torch.stack([self.keyframes[k].pose for k in window]).double()
+        disps = torch.stack([self.keyframes[k].disp for k in window]).double()
+        return linearize_visual(poses, disps, edge_set, self.coords.double(), self.intr, self.config.ba.huber_delta)
+
+    def _marginalize(self, window: list[int], edges: dict) -> None:
+        """Marginalise ``window[0]`` (:meth:`VisualInertialEstimator.marginalize`, :mod:`vigs_core.vio.marginalization`)
+        with the reduced camera system of its hosted edges ``(window[0], j)`` (its disparities eliminated, no LM
+        damping); the edges ``(j, window[0])`` hosted by the remaining keyframes are dropped."""
+        c = self.vio_config
+        if not (c.enabled and c.marginalize and self.vio.metric):
+            return
+        poses = torch.stack([self.keyframes[k].pose for k in window]).double()
+        hosted = {e: v for e, v in edges.items() if e[0] == window[0]}
+        visual = None
+        if hosted and c.marginalize_visual:
+            system = self._edge_system(window, hosted)
+            visual = schur_reduce(system, system.C + self.config.ba.disparity_damping)
+        self.vio.marginalize(window, poses, visual)
 
     def _ba(self, iterations: int, fixed: list[int] | None = None) -> None:
         n_fixed = self.vio_config.metric_fixed_keyframes
-        if fixed is None and self.vio.metric and n_fixed > 0:
+        if fixed is None and self.vio.prior_holds_gauge(list(self.graph.keyframes)):
+            fixed = []   # the marginalisation prior holds the gauge (and the scale)
+        elif fixed is None and self.vio.metric and n_fixed > 0:
             fixed = self.graph.keyframes[:n_fixed]   # the IMU observes the scale: no second fixed keyframe
+            if fixed == self.graph.fixed_ids():
+                fixed = None
         self._anchored = set(self.graph.fixed_ids() if fixed is None else fixed)
         super()._ba(iterations, fixed)
 
@@ -133,6 +189,12 @@ class VisualInertialOdometry(DenseOdometry):
         poses = torch.stack([self.keyframes[k].pose for k in ids])
         t0 = self._tic()
         alignment = self.vio.on_keyframe(ids, stamps, poses)
+        if alignment is None and self.vio.refinement_due(int(stamps[-1])):
+            refined = self.vio.refine_scale(ids, stamps, poses)
+            if refined is not None:
+                self._apply_alignment(refined)
+            self._toc("vio_init", t0)
+            return
         self._toc("vio_init", t0)
         if alignment is not None:
             self._apply_alignment(alignment)
