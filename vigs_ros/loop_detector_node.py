@@ -121,8 +121,7 @@ class LoopDetectorNode(VigsNode):
         if result is not None:
             self.publish_corrections(result.corrections)
         if self.closure.pending:
-            scale_information = self.config.graph.sigma_metric_log_scale ** -2 if self.metric else 0.0
-            self.closure.start_pgba({k: v.T_WC for k, v in self.views.items()}, scale_information)
+            self.closure.start_pgba({k: v.T_WC for k, v in self.views.items()}, self.metric)
         for key, value in self.closure.stats.as_dict().items():
             if isinstance(value, (int, float)):
                 self.status.info[f"loop.{key}"] = str(value)

@@ -149,7 +149,9 @@ class DenseOdometry:
         self.grid = PixelGrid(width, height, self.config.grid_stride)
         self.estimator = DISFlowEstimator(self.grid, self.config.flow)
         self.tracking_estimator = DISFlowEstimator(self.grid, self.config.tracking_flow)
-        self.covis_estimator = DISFlowEstimator(self.grid, self.config.covis_flow)
+        # one estimator (DIS instances, pair thread) for both kinds of edge when their settings agree
+        self.covis_estimator = (self.estimator if self.config.covis_flow == self.config.flow
+                                else DISFlowEstimator(self.grid, self.config.covis_flow))
         self.policy = KeyframePolicy(self.config.keyframes)
         self.graph = FrameGraph(self.config.graph)
         self.coords = torch.from_numpy(self.grid.coords())

@@ -119,14 +119,14 @@ class LoopClosure:
         with self._lock:
             return self._pending_loops > 0
 
-    def start_pgba(self, poses: dict[int, torch.Tensor], scale_information: float = 0.0) -> bool:
+    def start_pgba(self, poses: dict[int, torch.Tensor], metric: bool = False) -> bool:
         """Queue PGBA over the whole graph at the current poses ``{id: T_WC (4, 4)}`` when a loop is pending, no
-        PGBA is in flight and no result waits to be polled; True when queued. ``scale_information``: see
+        PGBA is in flight and no result waits to be polled; True when queued. ``metric``: see
         :meth:`KeyframePoseGraph.build` (metric keyframes)."""
         with self._lock:
             if self._pending_loops == 0 or self._in_flight or self._result is not None:
                 return False
-            graph, ids = self.graph.build(poses, self.units, scale_information)
+            graph, ids = self.graph.build(poses, self.units, metric)
             loops = len(self.graph.loops)
             self._pending_loops = 0
             self._in_flight = True

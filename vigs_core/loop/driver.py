@@ -106,8 +106,7 @@ class LoopClosureDriver:
 
     def _start_pgba(self) -> None:
         poses = {k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered}
-        scale_information = self.config.graph.sigma_metric_log_scale ** -2 if self._metric() else 0.0
-        self.closure.start_pgba(poses, scale_information)
+        self.closure.start_pgba(poses, self._metric())
 
     def apply(self, result: PGBAResult) -> dict[int, tuple[torch.Tensor, float]]:
         """Apply PGBA corrections to the odometry (and its inertial states), the mapper and ``on_update``."""

@@ -67,10 +67,11 @@ class KeyframePoseGraph:
         self.loops.append(edge)
 
     def build(self, poses: dict[int, torch.Tensor], units: dict[int, float] | None = None,
-              scale_information: float = 0.0) -> tuple[PoseGraph, list[int]]:
+              metric: bool = False) -> tuple[PoseGraph, list[int]]:
         """The :class:`PoseGraph` at the current poses ``{id: T_WC (4, 4)}`` (every graph id needed) and its
-        node ids in order; ``scale_information`` > 0 puts an absolute prior of that information on every node's
-        log scale (metric keyframes: a loop corrects their poses, not their scale).
+        node ids in order; ``metric``: the keyframes are metric (visual-inertial), so every node's log scale
+        gets an absolute prior of standard deviation ``sigma_metric_log_scale`` (a loop corrects their poses,
+        not their scale).
 
         ``units``: the keyframes' current depth units (product of the loop-correction scales applied so far,
         default 1). A loop edge measured when the units were ``u_a, u_b`` relates points ``X_b -> X_a``; with the
@@ -100,7 +101,8 @@ class KeyframePoseGraph:
         meas = torch.cat([z_odo] + [rescaled(e)[None] for e in self.loops])
         info = torch.cat([self.odometry[e][None] for e in odo] + [e.information.to(F64)[None] for e in self.loops])
         robust = torch.cat((torch.zeros(len(odo), dtype=torch.bool), torch.ones(len(self.loops), dtype=torch.bool)))
-        prior = torch.full((len(ids),), float(scale_information), dtype=F64) if scale_information > 0 else None
+        prior = (torch.full((len(ids),), self.config.sigma_metric_log_scale ** -2, dtype=F64) if metric
+                 else None)
         return PoseGraph(S, ei, ej, meas, info, robust=robust, fixed=[0], scale_information=prior), ids
 
 

@@ -37,6 +37,11 @@ from vigs_core.vio.marginalization import marginalize_keyframe
 F64 = torch.float64
 
 
+def _bias_stds(gyro: float, acc: float) -> torch.Tensor:
+    """(6,) standard deviations of a bias (gyroscope x3, accelerometer x3)."""
+    return torch.tensor([gyro] * 3 + [acc] * 3, dtype=F64)
+
+
 @dataclass
 class KeyframeInertial:
     """Inertial state of one keyframe: stamp (ns), body velocity (3,) m/s (world), bias (6,) (b_g, b_a)."""
@@ -176,7 +181,7 @@ class VisualInertialEstimator:
             return None
         joint = self.stage == Stage.JOINT_UNALIGNED
         pre = stack_preintegrated([self.preintegration(i, j) for i, j in zip(ids[:-1], ids[1:])])
-        prior = torch.tensor([c.bias_prior_gyro_std] * 3 + [c.bias_prior_acc_std] * 3, dtype=F64)
+        prior = _bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std)
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
         anchor, marginal, index = None, None, None
@@ -185,8 +190,8 @@ class VisualInertialEstimator:
         elif self.metric and anchored and c.anchor_velocity_std > 0:
             mask = torch.tensor([k in anchored for k in ids])
             all_biases = torch.stack([self.bias_of(k) for k in ids])
-            bias_std = torch.tensor([c.anchor_bias_gyro_std] * 3 + [c.anchor_bias_acc_std] * 3, dtype=F64)
-            anchor = AnchorPrior(mask, vel.clone(), all_biases, c.anchor_velocity_std, bias_std)
+            anchor = AnchorPrior(mask, vel.clone(), all_biases, c.anchor_velocity_std,
+                                 _bias_stds(c.anchor_bias_gyro_std, c.anchor_bias_acc_std))
         terms = InertialTerms(pre, self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias,
                               estimate_gravity=joint, estimate_scale=joint, gravity=c.gravity,
                               weight=c.inertial_weight, bias_prior_std=prior, anchor=anchor, marginal=marginal,
@@ -209,13 +214,12 @@ class VisualInertialEstimator:
             return
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
-        bias_std = torch.tensor([c.bias_prior_gyro_std] * 3 + [c.bias_prior_acc_std] * 3, dtype=F64)
-        anchor_std = torch.tensor([c.anchor_bias_gyro_std] * 3 + [c.anchor_bias_acc_std] * 3, dtype=F64)
         self.marginal = marginalize_keyframe(
             self.marginal, list(ids), poses, vel, biases, stack_preintegrated([self.preintegration(ids[0], ids[1])]),
             self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias, gravity=c.gravity,
-            weight=c.inertial_weight, bias_prior_std=bias_std, visual=visual,
-            anchor_std=(c.anchor_velocity_std, anchor_std))
+            weight=c.inertial_weight, bias_prior_std=_bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std),
+            visual=visual,
+            anchor_std=(c.anchor_velocity_std, _bias_stds(c.anchor_bias_gyro_std, c.anchor_bias_acc_std)))
         self.marginalized += 1
 
     def update(self, ids: list[int], state: InertialState) -> None:
@@ -262,12 +266,15 @@ class VisualInertialEstimator:
                 return alignment
         return None
 
+    def hold_delay_passed(self, t_ns: int) -> bool:
+        """True when the map has been metric for ``metric_hold_delay_s`` at ``t_ns``."""
+        return self.metric and (int(t_ns) - self.metric_since_ns) * 1e-9 >= self.config.metric_hold_delay_s
+
     def refinement_due(self, t_ns: int) -> bool:
         """True when the scale refinement should run at a keyframe at ``t_ns`` (``scale_refinement`` on, metric
         for ``metric_hold_delay_s``, not yet run)."""
         c = self.config
-        return (c.enabled and c.scale_refinement and self.metric and not self.scale_refined
-                and (int(t_ns) - self.metric_since_ns) * 1e-9 >= c.metric_hold_delay_s)
+        return c.enabled and c.scale_refinement and not self.scale_refined and self.hold_delay_passed(t_ns)
 
     def refine_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
         """Scale refinement (as ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C): the inertial-only problem of

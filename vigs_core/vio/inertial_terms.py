@@ -83,6 +83,15 @@ def state_columns(index: list[int], n: int, estimate_bias: bool, per_keyframe_bi
     return torch.cat(cols)
 
 
+def window_biases(biases: torch.Tensor, index: list[int] | torch.Tensor, estimate_bias: bool,
+                  per_keyframe_bias: bool) -> torch.Tensor:
+    """The bias rows that belong to the keyframes at window positions ``index``: theirs (per-keyframe biases),
+    the one global bias, or none ((0, 6), biases not estimated)."""
+    if not estimate_bias:
+        return biases[:0]
+    return biases[index] if per_keyframe_bias else biases
+
+
 @dataclass
 class MarginalPrior:
     """Gaussian prior on window states left by marginalising keyframes out of the window (Schur complement of the
@@ -126,6 +135,16 @@ class MarginalPrior:
     def cost(self, delta: torch.Tensor) -> torch.Tensor:
         """``1/2 delta^T H delta - g^T delta + c0`` (scalar)."""
         return 0.5 * delta @ (self.H @ delta) - self.g @ delta + self.c0
+
+    def linearized(self, poses: torch.Tensor, velocities: torch.Tensor, biases: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Hessian ``A^T H A`` (D, D) and gradient ``A^T (g - H delta)`` (D,) in the solver's increments, and
+        ``delta`` (D,), at the given states (as :meth:`delta`; ``A`` the class docstring's Jacobian)."""
+        d, Jl_inv = self.delta(poses, velocities, biases)
+        A = torch.eye(d.shape[0], dtype=torch.float64, device=d.device)
+        K = Jl_inv.shape[0]
+        A[:6 * K, :6 * K] = torch.block_diag(*Jl_inv)
+        return A.T @ self.H @ A, A.T @ (self.g - self.H @ d), d
 
 
 class InertialTerms:
@@ -241,20 +260,18 @@ class InertialTerms:
             cost = cost + 0.5 * ((info_v * r_v ** 2).sum() + (info_b * r_b ** 2).sum())
         return cost
 
-    def _marginal_delta(self, poses: torch.Tensor, state: InertialState) -> tuple[torch.Tensor, torch.Tensor]:
-        m, idx = self.marginal, self._marginal_index
-        if not self.estimate_bias:
-            b = state.biases[:0]
-        else:
-            b = state.biases[idx] if self.per_keyframe_bias else state.biases
-        return m.delta(poses[idx], state.velocities[idx], b)
+    def _marginal_states(self, poses: torch.Tensor, state: InertialState) -> tuple[torch.Tensor, ...]:
+        """Poses, velocities and biases of the marginalisation prior's keyframes."""
+        idx = self._marginal_index
+        return poses[idx], state.velocities[idx], window_biases(state.biases, idx, self.estimate_bias,
+                                                                self.per_keyframe_bias)
 
     def cost(self, poses: torch.Tensor, state: InertialState) -> torch.Tensor:
         """``1/2 w sum r^T Cov^-1 r`` plus the bias, anchor and marginalisation priors (scalar)."""
         r = self._residual_vector(self.evaluate(poses, state))
         cost = 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
         if self.marginal is not None:
-            cost = cost + self.marginal.cost(self._marginal_delta(poses, state)[0])
+            cost = cost + self.marginal.cost(self.marginal.delta(*self._marginal_states(poses, state))[0])
         return cost
 
     def jacobian(self, poses: torch.Tensor, state: InertialState) -> tuple[torch.Tensor, torch.Tensor]:
@@ -316,14 +333,10 @@ class InertialTerms:
                 g[sl] -= (info_b * r_b).reshape(-1)
         cost = 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
         if self.marginal is not None:
-            d, Jl_inv = self._marginal_delta(poses, state)
-            A = torch.eye(d.shape[0], dtype=torch.float64, device=d.device)
-            K = Jl_inv.shape[0]
-            A[:6 * K, :6 * K] = torch.block_diag(*Jl_inv)
-            Hm = self.marginal.H
+            Hm, gm, d = self.marginal.linearized(*self._marginal_states(poses, state))
             c = self._marginal_cols
-            H[c[:, None], c[None, :]] += A.T @ Hm @ A
-            g[c] += A.T @ (self.marginal.g - Hm @ d)
+            H[c[:, None], c[None, :]] += Hm
+            g[c] += gm
             cost = cost + self.marginal.cost(d)
         return H.to(poses.dtype), g.to(poses.dtype), cost
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 import torch
 
 from vigs_core.imu.preintegration import Preintegrated
-from vigs_core.vio.inertial_terms import InertialState, InertialTerms, MarginalPrior, state_columns
+from vigs_core.vio.inertial_terms import InertialState, InertialTerms, MarginalPrior, state_columns, window_biases
 
 F64 = torch.float64
 
@@ -78,21 +78,15 @@ def marginalize_keyframe(prior: MarginalPrior | None, ids: list[int], poses: tor
     H = torch.zeros(D, D, dtype=F64)
     g = torch.zeros(D, dtype=F64)
 
-    def bias_rows(index: list[int]) -> torch.Tensor:
-        if not estimate_bias:
-            return biases[:0]
-        return biases[index] if per_keyframe_bias else biases
-
     if prior is not None:
         if not set(prior.ids) <= set(ids):
             raise ValueError(f"marginalize_keyframe: prior keyframes {prior.ids} not in the window {ids}")
         pos = [ids.index(k) for k in prior.ids]
-        d, Jl_inv = prior.delta(poses[pos], velocities[pos], bias_rows(pos))
-        A = torch.eye(d.shape[0], dtype=F64)
-        A[:6 * len(pos), :6 * len(pos)] = torch.block_diag(*Jl_inv)
+        Hp, gp, _ = prior.linearized(poses[pos], velocities[pos],
+                                     window_biases(biases, pos, estimate_bias, per_keyframe_bias))
         c = state_columns(pos, N, estimate_bias, per_keyframe_bias)
-        H[c[:, None], c[None, :]] += A.T @ prior.H @ A
-        g[c] += A.T @ (prior.g - prior.H @ d)
+        H[c[:, None], c[None, :]] += Hp
+        g[c] += gp
 
     # inertial factor (k_0, k_1); the bias prior of b_1 stays with the windows that still hold k_1
     terms = InertialTerms(pre, T_cb, estimate_bias=estimate_bias, per_keyframe_bias=per_keyframe_bias,
@@ -135,5 +129,5 @@ def marginalize_keyframe(prior: MarginalPrior | None, ids: list[int], poses: tor
     H_new = 0.5 * (H_new + H_new.T)
     c0 = float(0.5 * g_new @ (_pinv_psd(H_new) @ g_new))
     keep = list(range(1, N))
-    return MarginalPrior(list(ids[1:]), poses[1:].clone(), velocities[1:].clone(), bias_rows(keep).clone(),
-                         H_new, g_new, c0)
+    return MarginalPrior(list(ids[1:]), poses[1:].clone(), velocities[1:].clone(),
+                         window_biases(biases, keep, estimate_bias, per_keyframe_bias).clone(), H_new, g_new, c0)

@@ -103,18 +103,19 @@ class VisualInertialOdometry(DenseOdometry):
         c = self.vio_config
         if not c.enabled:
             return self.config.hold_fixed_disparity
-        if not (self.vio.metric and c.metric_hold_fixed_disparity):
-            return False
-        t_ns = self.keyframes[self.graph.keyframes[-1]].t_ns
-        return (t_ns - self.vio.metric_since_ns) * 1e-9 >= c.metric_hold_delay_s
+        newest = self.keyframes[self.graph.keyframes[-1]]
+        return c.metric_hold_fixed_disparity and self.vio.hold_delay_passed(newest.t_ns)
 
     def _insert_into_graph(self, kf: Keyframe) -> list[tuple[int, int]]:
         """Insert as the front end does; a keyframe that leaves the window is marginalised (once metric)."""
+        c = self.vio_config
+        if not (c.enabled and c.marginalize and self.vio.metric):
+            return super()._insert_into_graph(kf)
         before, edges = list(self.graph.keyframes), dict(self.edges)
         new_edges = super()._insert_into_graph(kf)
         for k in [k for k in before if k not in self.graph.keyframes]:
             window = [x for x in before if x >= k]
-            self._marginalize(window, {e: c for e, c in edges.items() if e[0] == k and e[1] in window})
+            self._marginalize(window, {e: corr for e, corr in edges.items() if e[0] == k and e[1] in window})
         return new_edges
 
     def _edge_system(self, window: list[int], edges: dict):
@@ -129,17 +130,14 @@ class VisualInertialOdometry(DenseOdometry):
         disps = torch.stack([self.keyframes[k].disp for k in window]).double()
         return linearize_visual(poses, disps, edge_set, self.coords.double(), self.intr, self.config.ba.huber_delta)
 
-    def _marginalize(self, window: list[int], edges: dict) -> None:
+    def _marginalize(self, window: list[int], hosted: dict) -> None:
         """Marginalise ``window[0]`` (:meth:`VisualInertialEstimator.marginalize`, :mod:`vigs_core.vio.marginalization`)
-        with the reduced camera system of its hosted edges ``(window[0], j)`` (its disparities eliminated, no LM
-        damping); the edges ``(j, window[0])`` hosted by the remaining keyframes are dropped."""
-        c = self.vio_config
-        if not (c.enabled and c.marginalize and self.vio.metric):
-            return
+        with the reduced camera system of its hosted edges ``hosted`` {(window[0], j): correspondences} (its
+        disparities eliminated, no LM damping); the edges ``(j, window[0])`` hosted by the remaining keyframes are
+        dropped."""
         poses = torch.stack([self.keyframes[k].pose for k in window]).double()
-        hosted = {e: v for e, v in edges.items() if e[0] == window[0]}
         visual = None
-        if hosted and c.marginalize_visual:
+        if hosted and self.vio_config.marginalize_visual:
             system = self._edge_system(window, hosted)
             visual = schur_reduce(system, system.C + self.config.ba.disparity_damping)
         self.vio.marginalize(window, poses, visual)
