@@ -52,6 +52,19 @@ def test_dis_recovers_affine_warp(A):
     assert corr.mean_flow == pytest.approx(np.linalg.norm(truth - c, axis=1).mean(), abs=0.5)
 
 
+def test_flow_without_an_initial_flow_does_not_depend_on_the_previous_call():
+    """Without an initial flow DIS starts from zero, not from the initial flow of the call before it (OpenCV 5.0's
+    DIS reuses that one unless a zero flow is passed)."""
+    est = DISFlowEstimator(PixelGrid(W, H, 8))
+    src = texture(2)
+    dst = warp(src, np.float32([[1, 0, 12.0], [0, 1, -6.0]]))
+    fresh = est.dense_flow(src, dst, None)
+    other = texture(3)
+    est.dense_flow(other, warp(other, np.float32([[1, 0, -30.0], [0, 1, 20.0]])),
+                   np.tile(np.float32([-30.0, 20.0]), (H, W, 1)))
+    assert np.array_equal(est.dense_flow(src, dst, None), fresh)
+
+
 def test_initial_flow_helps_large_motion_and_confidence_flags_occlusion():
     src = texture(1)
     A = np.float32([[1, 0, 40.0], [0, 1, 0.0]])

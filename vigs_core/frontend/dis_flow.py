@@ -78,13 +78,15 @@ class DISFlowEstimator:
 
     def dense_flow(self, source: np.ndarray, target: np.ndarray, initial: np.ndarray | None,
                    dis: cv2.DISOpticalFlow | None = None) -> np.ndarray:
-        """DIS flow (H, W, 2) float32 from ``source`` to ``target``, optionally initialised with ``initial``
-        (``dis``: the DIS instance to use, default the estimator's own)."""
+        """DIS flow (H, W, 2) float32 from ``source`` to ``target``, initialised with ``initial`` or, without one,
+        with zero flow (``dis``: the DIS instance to use, default the estimator's own). The zero flow is passed
+        explicitly: OpenCV 5.0's DIS, called without an initial flow after a call with one, silently starts from
+        that earlier initial flow, so a flow would depend on the pair computed before it."""
         self._check(source)
         self._check(target)
         dis = dis or self._dis
         if initial is None:
-            return dis.calc(source, target, None)
+            initial = np.zeros(source.shape[:2] + (2,), dtype=np.float32)
         # DIS refines a flow passed in with the image's size and 2 float32 channels (its "initial flow")
         return dis.calc(source, target, np.array(initial, dtype=np.float32, order="C"))
 
