@@ -2,13 +2,17 @@
 
 A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (55) keyframes older:
 
-1. orientation: the current estimates' relative rotation angle ``|Log(R_k^T R_j)|`` must be below 120 deg;
+1. orientation: the current estimates' relative rotation angle ``theta = |Log(R_k^T R_j)|`` must be below
+   120 deg, tested for all old keyframes at once through ``cos theta = (tr(R_k^T R_j) - 1) / 2``;
 2. appearance ranking (ours, to bound the cost): the survivors are ranked by the correlation of small
-   zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences;
+   zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences ``k -> j``;
 3. flow: a candidate needs a confidence-weighted mean flow magnitude ``k -> j`` below 22 px (and a mean
    confidence above ``min_mean_confidence``);
 4. verification (:func:`vigs_core.loop.two_view.estimate_relative_sim3`): dense two-view consistency in both
-   directions (forward-backward flow confidence, reprojection with the keyframes' depths, depth agreement);
+   directions (forward-backward flow confidence, reprojection with the keyframes' depths, depth agreement) on
+   correspondences ``j -> k`` started from the negated flow ``k -> j`` and ``k -> j`` re-estimated from the
+   negated ``j -> k``. Every flow starts from an explicit initial flow (zero for step 3), so a pair's
+   correspondences do not depend on the pairs checked before it (see :meth:`LoopDetector._correspondences`);
 5. drift plausibility (ours): the measured relative pose may differ from the current relative estimate only
    by what odometry can have drifted over the path between the two keyframes (translation at most
    ``max_drift_fraction`` of the path length plus ``min_drift_m``, rotation and scale bounded). A repeated
@@ -27,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 
-from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
+from vigs_core.frontend.correspondence import CorrespondenceEstimator, Correspondences, PixelGrid
 from vigs_core.geometry import sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
@@ -80,6 +84,11 @@ class LoopDecision:
     accepted: LoopEdge | None = None
 
 
+def _two_view(corr: Correspondences) -> TwoViewCorrespondences:
+    return TwoViewCorrespondences(torch.from_numpy(np.asarray(corr.target, dtype=np.float64)),
+                                  torch.from_numpy(np.asarray(corr.weight, dtype=np.float64)))
+
+
 def thumbnail(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Zero-mean, unit-norm float32 thumbnail (size[1] * size[0],) of a grey image (area averaging)."""
     small = cv2.resize(image.astype(np.float32), size, interpolation=cv2.INTER_AREA).reshape(-1)
@@ -90,6 +99,15 @@ def thumbnail(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 def rotation_angle_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
     """Angle (degrees) of the relative rotation of two poses (4, 4)."""
     return math.degrees(float(so3_log(T_a[:3, :3].T @ T_b[:3, :3]).norm()))
+
+
+def rotation_cosines(T_new: torch.Tensor, T_old: Sequence[torch.Tensor]) -> np.ndarray:
+    """``cos`` of the relative rotation angle between ``T_new`` (4, 4) and each pose of ``T_old`` (N of (4, 4)):
+    ``cos theta_j = (tr(R_new^T R_j) - 1) / 2`` with ``tr(A^T B) = sum_ab A_ab B_ab`` (N,) (one vectorised pass
+    where :func:`rotation_angle_deg` per pair costs an SO(3) logarithm each)."""
+    R_new = T_new[:3, :3].to(F64).numpy()
+    R_old = np.stack([T[:3, :3].to(F64).numpy() for T in T_old]) if len(T_old) else np.zeros((0, 3, 3))
+    return (np.einsum("nab,ab->n", R_old, R_new) - 1.0) / 2.0
 
 
 def path_length(positions: torch.Tensor) -> float:
@@ -114,6 +132,7 @@ class LoopDetector:
         self.detection = detection or LoopDetectionConfig()
         self.verification = verification or LoopVerificationConfig()
         self._thumbs: dict[int, np.ndarray] = {}
+        self._coords = self.grid.coords()   # (P, 2) grid pixels: the targets of zero flow
         self._last_loop_kf: int | None = None
 
     def _thumb(self, kf: KeyframeView) -> np.ndarray:
@@ -126,18 +145,21 @@ class LoopDetector:
         at most ``max_flow_checks``."""
         cfg = self.detection
         old = [kf for kf in history if kf.id <= new.id - cfg.min_keyframe_gap]
-        old = [kf for kf in old if rotation_angle_deg(kf.T_WC, new.T_WC) < cfg.max_orientation_deg]
+        cos_max = math.cos(math.radians(cfg.max_orientation_deg))
+        old = [kf for kf, c in zip(old, rotation_cosines(new.T_WC, [kf.T_WC for kf in old])) if c > cos_max]
         t_new = self._thumb(new)
         old.sort(key=lambda kf: -float(self._thumb(kf) @ t_new))
         return old[:cfg.max_flow_checks]
 
-    def _correspondences(self, src: KeyframeView, dst: KeyframeView) -> tuple[TwoViewCorrespondences, float]:
-        """Dense correspondences ``src -> dst`` and their mean flow (inf without confident matches)."""
-        corr = self.estimator.estimate(src.image, dst.image)
+    def _correspondences(self, src: KeyframeView, dst: KeyframeView, initial_target: np.ndarray | None = None
+                         ) -> tuple[TwoViewCorrespondences, float]:
+        """Dense correspondences ``src -> dst`` with forward-backward confidences and their mean flow (inf
+        without confident matches); the flow starts from ``initial_target`` (P, 2), default zero flow (which the
+        estimator passes to DIS explicitly, :meth:`~vigs_core.frontend.dis_flow.DISFlowEstimator.dense_flow`)."""
+        corr = self.estimator.estimate(src.image, dst.image, initial_target)
         weight = np.asarray(corr.weight, dtype=np.float64)
         flow = corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
-        return (TwoViewCorrespondences(torch.from_numpy(np.asarray(corr.target, dtype=np.float64)),
-                                       torch.from_numpy(weight)), flow)
+        return _two_view(corr), flow
 
     def drift_check(self, old: KeyframeView, new: KeyframeView, relative: torch.Tensor,
                     history: Sequence[KeyframeView]) -> str:
@@ -171,7 +193,10 @@ class LoopDetector:
             if mean_flow >= cfg.max_mean_flow_px:
                 continue
             decision.candidates.append(old.id)
-            ba, _ = self._correspondences(old, new)
+            # old -> new from the negated flow new -> old at the same grid pixel, then new -> old again from the
+            # negated old -> new (module docstring, step 4)
+            ba, _ = self._correspondences(old, new, 2.0 * self._coords - ab.target.numpy())
+            ab, _ = self._correspondences(new, old, 2.0 * self._coords - ba.target.numpy())
             # a = old, b = new: Z = S_old^{-1} S_new
             result = estimate_relative_sim3(old.depth, new.depth, ba, ab, self.grid, self.intr, self.verification)
             reason = result.reason if not result.accepted else self.drift_check(old, new, result.relative, history)

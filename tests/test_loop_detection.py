@@ -1,0 +1,55 @@
+"""Loop candidate detection: the vectorised orientation test, and a candidate's flow that does not depend on
+which pairs the detector checked before."""
+import math
+
+import numpy as np
+import torch
+
+from loop_synthetic import cast, look, render, room
+from vigs_core.frontend import DISFlowEstimator, PixelGrid
+from vigs_core.geometry import so3_exp
+from vigs_core.loop.detection import KeyframeView, LoopDetector, rotation_angle_deg, rotation_cosines
+from vigs_core.solver import Intrinsics
+
+W, H = 160, 120
+INTR = Intrinsics(100.0, 100.0, 79.5, 59.5)
+GRID = PixelGrid(W, H, 8)
+
+
+def view(kf_id: int, yaw_deg: float, position: list[float]) -> KeyframeView:
+    T = look(math.radians(yaw_deg), np.asarray(position, dtype=float))
+    depth = torch.from_numpy(cast(room(), T, GRID.coords(), INTR, shade=False)[0])
+    return KeyframeView(kf_id, render(room(), T, INTR, W, H), T, depth)
+
+
+def test_rotation_cosines_match_the_relative_rotation_angle():
+    gen = torch.Generator().manual_seed(3)
+    poses = []
+    for angle in (0.0, 0.3, 1.0, 2.0, 3.1):   # rotation angles (rad) of the relative rotations
+        axis = torch.randn(3, generator=gen, dtype=torch.float64)
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3] = so3_exp(axis / axis.norm() * angle)
+        poses.append(T)
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, :3] = so3_exp(torch.tensor([0.2, -0.4, 0.1], dtype=torch.float64))
+    poses = [base @ T for T in poses]   # relative rotations seen from a rotated new keyframe
+    cos = rotation_cosines(base, poses)
+    expected = [math.cos(math.radians(rotation_angle_deg(base, T))) for T in poses]
+    assert np.allclose(cos, expected, atol=1e-9)
+    assert np.allclose(cos, np.cos([0.0, 0.3, 1.0, 2.0, 3.1]), atol=1e-9)
+    assert rotation_cosines(base, []).shape == (0,)
+
+
+def test_a_candidates_loop_edge_does_not_depend_on_the_pairs_checked_before():
+    torch.set_num_threads(1)
+    old, new = view(0, 30.0, [0.3, 0.2, 1.5]), view(100, 36.0, [0.4, 0.15, 1.45])
+    fresh = LoopDetector(DISFlowEstimator(GRID), INTR).detect(new, [old])
+    assert fresh.accepted is not None and fresh.accepted.old == 0, fresh.rejected
+    used = LoopDetector(DISFlowEstimator(GRID), INTR)
+    # other pairs first (their flows: DIS calls with and without initial flows on the same instances)
+    used.detect(view(60, 150.0, [-0.5, 0.3, 1.5]), [view(1, 140.0, [-0.4, 0.4, 1.5])])
+    used.detect(view(70, -60.0, [0.2, -0.5, 1.5]), [view(2, -40.0, [0.0, -0.4, 1.6])])
+    again = used.detect(new, [old])
+    assert again.accepted is not None
+    assert torch.equal(again.accepted.relative, fresh.accepted.relative)
+    assert again.accepted.inlier_fraction == fresh.accepted.inlier_fraction
