@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from vigs_core.geometry import so3_log
+from vigs_core.geometry import hat, so3_exp, so3_left_jacobian, so3_log, so3_right_jacobian
 from vigs_core.imu.analytic_motion import GRAVITY, AnalyticMotion
 from vigs_core.imu.preintegration import (
+    _PieceMatrices,
     preintegrate,
     preintegrate_between,
+    preintegrate_intervals,
     preintegrate_measurements,
+    preintegrate_rotation,
     preintegrate_segments,
 )
 from vigs_core.imu.samples import ImuDataWarning, interval_measurements
@@ -249,3 +252,53 @@ def test_covariance_matches_monte_carlo_of_white_measurement_noise():
     assert abs(float(nees) / 9 - 1) < 0.15
     rel = (sample.diagonal() / predicted.diagonal() - 1).abs().max()
     assert float(rel) < 0.25
+
+
+def test_piece_matrices_match_the_so3_functions_and_the_gamma2_series():
+    """One [phi]x and one set of coefficients give Exp, J_r, J_l (as vigs_core.geometry.so3) and
+    G2 = sum_n [phi]x^n / (n+2)!, on both sides of the small-angle switch."""
+    phi = torch.tensor([[0.0, 0.0, 0.0], [3e-5, -2e-5, 1e-5], [0.01, 0.02, -0.03], [0.4, -1.1, 0.7]],
+                       dtype=torch.float64)
+    m = _PieceMatrices.of(phi, "closed_form")
+    assert torch.equal(m.exp, so3_exp(phi)) and torch.equal(m.right_jacobian, so3_right_jacobian(phi))
+    assert torch.equal(m.left_jacobian, so3_left_jacobian(phi))
+    k = hat(phi)
+    series, power, fact = torch.zeros_like(k), torch.eye(3, dtype=torch.float64).expand_as(k), 2.0
+    for n in range(30):
+        series = series + power / fact
+        power, fact = power @ k, fact * (n + 3)
+    assert (m.gamma2 - series).abs().max() < 1e-12   # cancellation in (t^2/2 + cos t - 1) / t^4 above the switch
+    forster = _PieceMatrices.of(phi, "forster")
+    assert forster.left_jacobian is None and forster.gamma2 is None and torch.equal(forster.exp, m.exp)
+
+
+@pytest.mark.parametrize("scheme", ["closed_form", "forster"])
+def test_rotation_alone_equals_the_full_preintegration_rotation(scheme, tmp_path):
+    imu = load_imu("V1_01_easy", tmp_path)
+    t0 = int(imu.t_ns[7]) + 2_345_678
+    bg = torch.tensor([0.01, -0.03, 0.02], dtype=torch.float64)
+    for t1 in (t0 + 1_000_000, t0 + 50_000_001, t0 + 700_000_000):
+        full = preintegrate(imu, t0, t1, ImuNoise(), bg, torch.tensor([0.2, 0.1, -0.3]), scheme)
+        assert torch.equal(preintegrate_rotation(imu, t0, t1, bg), full.delta_R)
+    with pytest.raises(ValueError, match="inside the samples"):
+        preintegrate_rotation(imu, t0, int(imu.t_ns[-1]) + 1)
+
+
+def test_arbitrary_intervals_batched_equal_one_at_a_time(tmp_path):
+    """Unordered, overlapping and nested intervals with one bias each, in one vectorised pass."""
+    imu = load_imu("MH_03_medium", tmp_path)
+    base = int(imu.t_ns[5])
+    t0 = base + np.array([400_000_001, 0, 123_456_789, 10_000_000])
+    t1 = base + np.array([900_000_000, 1_000_400_000, 300_000_000, 10_000_000 + 2_000_000])
+    bg = torch.tensor([[0.01, 0.02, 0.03]] * 4, dtype=torch.float64) * torch.arange(1, 5)[:, None]
+    ba = -2 * bg
+    batch = preintegrate_intervals(imu, t0, t1, ImuNoise(), bg, ba)
+    assert list(batch.t0_ns) == list(t0) and list(batch.t1_ns) == list(t1)
+    for k in range(4):
+        one = preintegrate(imu, t0[k], t1[k], ImuNoise(), bg[k], ba[k])
+        for name in ("delta_R", "delta_v", "delta_p", "cov", "J_R_bg", "J_v_bg", "J_v_ba", "J_p_bg", "J_p_ba"):
+            assert torch.allclose(getattr(batch.item(k), name), getattr(one, name), rtol=1e-12, atol=1e-14), name
+    with pytest.raises(ValueError, match="interval starts and ends"):
+        preintegrate_intervals(imu, t0, t1[:3], ImuNoise())
+    with pytest.raises(ValueError, match="t1 > t0"):
+        preintegrate_intervals(imu, t1[:1], t0[:1], ImuNoise())

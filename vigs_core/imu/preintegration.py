@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from vigs_core.geometry import hat, so3_exp, so3_left_jacobian, so3_right_jacobian
+from vigs_core.geometry import hat, so3_exp
+from vigs_core.geometry.so3 import _coefficients as _rodrigues_coefficients
 from vigs_core.imu.samples import interval_measurements
 from vigs_core.types import ImuNoise, ImuSamples
 
@@ -103,6 +104,13 @@ class Preintegrated:
         dp = self.delta_p + mv(self.J_p_bg, dbg) + mv(self.J_p_ba, dba)
         return dR, dv, dp
 
+    def item(self, k: int) -> "Preintegrated":
+        """Element ``k`` of a batched :class:`Preintegrated`."""
+        return Preintegrated(**{
+            name: (value[k] if name not in ("t0_ns", "t1_ns") else np.int64(value[k]))
+            for name, value in vars(self).items()
+        })
+
 
 @dataclass
 class IntegratedPath:
@@ -119,19 +127,39 @@ class IntegratedPath:
     p: torch.Tensor
 
 
-def _gamma2(phi: torch.Tensor) -> torch.Tensor:
-    """``G2(phi) = sum_n [phi]x^n / (n+2)!`` (..., 3) -> (..., 3, 3), the double integral of ``Exp(s phi)``.
+@dataclass
+class _PieceMatrices:
+    """The SO(3) matrices of the pieces' rotation vectors ``phi`` (K, 3), each (K, 3, 3), from one ``[phi]x``
+    and one set of Rodrigues coefficients ``a = sin t / t``, ``b = (1 - cos t) / t^2``,
+    ``c = (t - sin t) / t^3`` (``t = |phi|``; :mod:`vigs_core.geometry.so3`, Taylor near 0)::
 
-    Closed form: ``I/2 + (t - sin t)/t^3 [phi]x + (t^2/2 + cos t - 1)/t^4 [phi]x^2`` (Taylor near 0).
+        Exp(phi) = I + a [phi]x + b [phi]x^2
+        J_r(phi) = I - b [phi]x + c [phi]x^2,   J_l(phi) = J_r(-phi) = I + b [phi]x + c [phi]x^2
+        G2(phi)  = sum_n [phi]x^n / (n+2)! = I/2 + c [phi]x + d [phi]x^2,   d = (t^2/2 + cos t - 1) / t^4
+
+    (``G2`` is the double integral of ``Exp(s phi)``; ``J_l`` and ``G2`` only for the closed-form scheme.)
     """
-    t2 = (phi * phi).sum(-1)
-    small = t2 < _SMALL_ANGLE**2
-    t = torch.where(small, torch.ones_like(t2), t2).sqrt()
-    c1 = torch.where(small, 1 / 6 - t2 / 120 + t2**2 / 5040, (t - torch.sin(t)) / t**3)
-    c2 = torch.where(small, 1 / 24 - t2 / 720 + t2**2 / 40320, (0.5 * t**2 + torch.cos(t) - 1) / t**4)
-    k = hat(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    return 0.5 * eye + c1[..., None, None] * k + c2[..., None, None] * (k @ k)
+
+    exp: torch.Tensor
+    right_jacobian: torch.Tensor
+    left_jacobian: torch.Tensor | None
+    gamma2: torch.Tensor | None
+
+    @staticmethod
+    def of(phi: torch.Tensor, scheme: str) -> "_PieceMatrices":
+        a, b, c = (x[..., None, None] for x in _rodrigues_coefficients(phi))
+        k = hat(phi)
+        kk = k @ k
+        eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+        exp, ck2 = eye + a * k + b * kk, c * kk
+        right = eye - b * k + ck2
+        if scheme != "closed_form":
+            return _PieceMatrices(exp, right, None, None)
+        t2 = (phi * phi).sum(-1)
+        small = t2 < _SMALL_ANGLE**2
+        t = torch.where(small, torch.ones_like(t2), t2).sqrt()
+        d = torch.where(small, 1 / 24 - t2 / 720 + t2**2 / 40320, (0.5 * t**2 + torch.cos(t) - 1) / t**4)
+        return _PieceMatrices(exp, right, eye + b * k + ck2, 0.5 * eye + c * k + d[..., None, None] * kk)
 
 
 def segmented_cumulative_product(mats: torch.Tensor, segment: torch.Tensor) -> torch.Tensor:
@@ -158,22 +186,23 @@ def _integrate(dt, w, a, segment, first, scheme: str):
     if scheme not in SCHEMES:
         raise ValueError(f"unknown preintegration scheme '{scheme}'; expected one of {SCHEMES}")
     phi = w * dt[:, None]
+    m = _PieceMatrices.of(phi, scheme)
     eye = torch.eye(3, dtype=dt.dtype, device=dt.device)
-    R_after = segmented_cumulative_product(so3_exp(phi), segment)
+    R_after = segmented_cumulative_product(m.exp, segment)
     is_first = torch.zeros(len(dt), dtype=torch.bool, device=dt.device)
     is_first[first] = True
     R_before = torch.where(is_first[:, None, None], eye, torch.cat((eye[None], R_after[:-1])))
     if scheme == "forster":
         g1, g2, g1a, g2a = None, None, a, 0.5 * a
     else:
-        g1, g2 = so3_left_jacobian(phi), _gamma2(phi)
+        g1, g2 = m.left_jacobian, m.gamma2
         g1a, g2a = (g1 @ a[..., None])[..., 0], (g2 @ a[..., None])[..., 0]
     du = (R_before @ g1a[..., None])[..., 0] * dt[:, None]  # velocity increments (K, 3)
     v_after = _segmented_cumsum(du, segment, first)
     v_before = v_after - du
     dq = v_before * dt[:, None] + (R_before @ g2a[..., None])[..., 0] * (dt * dt)[:, None]
     p_after = _segmented_cumsum(dq, segment, first)
-    return R_before, R_after, v_after, p_after, phi, g1, g2
+    return R_before, R_after, v_after, p_after, m.right_jacobian, g1, g2
 
 
 def integrate_path(
@@ -222,21 +251,22 @@ def preintegrate_segments(
     last = torch.cumsum(counts, 0) - 1
     first = last - counts + 1
     a = acc - bias_acc[segment]
-    R_before, R_after, v_after, p_after, phi, g1, g2 = _integrate(
+    R_before, R_after, v_after, p_after, J_r, g1, g2 = _integrate(
         dt, gyro - bias_gyro[segment], a, segment, first, scheme)
 
     t_after = _segmented_cumsum(dt, segment, first)
     total = t_after[last]
     remain = total[segment] - t_after  # T_K - T_{m+1}, (K,)
     R_N, v_N, p_N = R_after[last], v_after[last], p_after[last]
-    RJ = R_after @ so3_right_jacobian(phi) * dt[:, None, None]  # dR_{m+1} J_r(phi_m) dt_m
+    RJ = R_after @ J_r * dt[:, None, None]  # dR_{m+1} J_r(phi_m) dt_m
     s_v = v_N[segment] - v_after
     s_p = p_N[segment] - p_after - v_after * remain[:, None]
+    hat_sv, hat_sp, hat_a = hat(torch.stack((s_v, s_p, a)))
     d_phi_w = R_N[segment].transpose(-1, -2) @ RJ
-    d_v_w = -hat(s_v) @ RJ
-    d_p_w = -hat(s_p) @ RJ
+    d_v_w = -hat_sv @ RJ
+    d_p_w = -hat_sp @ RJ
     if scheme == "closed_form":
-        Ra = R_before @ hat(a)
+        Ra = R_before @ hat_a
         d_v_w = d_v_w - 0.5 * Ra * (dt * dt)[:, None, None]
         d_p_w = d_p_w - Ra * (0.5 * dt * dt * remain + dt**3 / 6.0)[:, None, None]
         d_v_a = R_before @ g1 * dt[:, None, None]
@@ -257,15 +287,16 @@ def preintegrate_segments(
     cov[:, 9:12, 9:12] = noise.gyro_random_walk**2 * total[:, None, None] * eye
     cov[:, 12:15, 12:15] = noise.acc_random_walk**2 * total[:, None, None] * eye
 
-    def summed(x):  # -sum over each segment's pieces, (S, 3, 3)
-        return -torch.zeros(n_seg, 3, 3, **f).index_add_(0, segment, x)
-
+    # bias Jacobians: -sum over each segment's pieces, (S, 3, 3) each
+    per_piece = torch.stack((d_phi_w, d_v_w, d_v_a, d_p_w, d_p_a), 1)
+    J_R_bg, J_v_bg, J_v_ba, J_p_bg, J_p_ba = (
+        -torch.zeros(n_seg, 5, 3, 3, **f).index_add_(0, segment, per_piece)).unbind(1)
     stamps = np.round(total.detach().cpu().numpy() * 1e9).astype(np.int64)
     return Preintegrated(
         t0_ns=np.zeros(n_seg, np.int64), t1_ns=stamps, dt=total,
         delta_R=R_N, delta_v=v_N, delta_p=p_N, cov=cov,
-        J_R_bg=summed(d_phi_w), J_v_bg=summed(d_v_w), J_v_ba=summed(d_v_a),
-        J_p_bg=summed(d_p_w), J_p_ba=summed(d_p_a), bias_gyro=bias_gyro, bias_acc=bias_acc,
+        J_R_bg=J_R_bg, J_v_bg=J_v_bg, J_v_ba=J_v_ba,
+        J_p_bg=J_p_bg, J_p_ba=J_p_ba, bias_gyro=bias_gyro, bias_acc=bias_acc,
     )
 
 
@@ -296,7 +327,7 @@ def preintegrate_measurements(
     ba = zeros if bias_acc is None else _as_f64(bias_acc, dev)
     segment = torch.zeros(len(dt), dtype=torch.long, device=dev)
     batch = preintegrate_segments(dt, gyro, acc, segment, noise, bg[None], ba[None], scheme)
-    return _item(batch, 0)
+    return batch.item(0)
 
 
 def _check_pieces(dt: torch.Tensor, gyro: torch.Tensor, acc: torch.Tensor) -> None:
@@ -304,14 +335,6 @@ def _check_pieces(dt: torch.Tensor, gyro: torch.Tensor, acc: torch.Tensor) -> No
         raise ValueError(f"need K >= 1 equal-length dt/gyro/acc, got {len(dt)}, {len(gyro)}, {len(acc)}")
     if bool((dt <= 0).any()):
         raise ValueError("preintegration needs positive piece lengths dt")
-
-
-def _item(batch: Preintegrated, k: int) -> Preintegrated:
-    """Element ``k`` of a batched :class:`Preintegrated`."""
-    return Preintegrated(**{
-        name: (value[k] if name not in ("t0_ns", "t1_ns") else np.int64(value[k]))
-        for name, value in vars(batch).items()
-    })
 
 
 def _as_f64(x, device) -> torch.Tensor:
@@ -336,8 +359,27 @@ def preintegrate(
     Warns (:class:`~vigs_core.imu.samples.ImuDataWarning`) on gaps, out-of-order or duplicated
     samples around the interval. Biases are (3,) rad/s and m/s^2 (default zero).
     """
-    out = _item(preintegrate_between(imu, np.array([t0_ns, t1_ns]), noise, bias_gyro, bias_acc, scheme, device), 0)
-    return out
+    return preintegrate_between(imu, np.array([t0_ns, t1_ns]), noise, bias_gyro, bias_acc, scheme, device).item(0)
+
+
+def preintegrate_rotation(
+    imu: ImuSamples,
+    t0_ns: int,
+    t1_ns: int,
+    bias_gyro: torch.Tensor | np.ndarray | None = None,
+    rate_hz: float | None = None,
+    device: torch.device | str = "cpu",
+) -> torch.Tensor:
+    """The rotation ``dR_ij`` (3, 3) alone, ``prod_k Exp((w_k - b_g) dt_k)`` (the same for both schemes):
+    the ``delta_R`` of :func:`preintegrate` without its velocity, position, covariance and Jacobians.
+    ``rate_hz`` is the nominal rate of the gap warnings (``noise.rate_hz`` in :func:`preintegrate`)."""
+    _, dt, gyro, _ = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
+    f64 = dict(dtype=torch.float64, device=device)
+    bg = torch.zeros(3, **f64) if bias_gyro is None else _as_f64(bias_gyro, device)
+    dt = torch.as_tensor(dt, **f64)
+    phi = (torch.as_tensor(gyro, **f64) - bg) * dt[:, None]
+    segment = torch.zeros(len(dt), dtype=torch.long, device=device)
+    return segmented_cumulative_product(so3_exp(phi), segment)[-1]
 
 
 def preintegrate_path(
@@ -390,10 +432,29 @@ def preintegrate_between(
     Biases may be (3,) (shared) or (M-1, 3) (one per interval, e.g. each interval's start keyframe).
     """
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    n = len(stamps_ns) - 1
-    if n < 1:
+    if len(stamps_ns) < 2:
         raise ValueError(f"need at least 2 stamps, got {len(stamps_ns)}")
-    pieces = [interval_measurements(imu, stamps_ns[k], stamps_ns[k + 1], rate_hz=noise.rate_hz) for k in range(n)]
+    return preintegrate_intervals(imu, stamps_ns[:-1], stamps_ns[1:], noise, bias_gyro, bias_acc, scheme, device)
+
+
+def preintegrate_intervals(
+    imu: ImuSamples,
+    t0_ns: np.ndarray,
+    t1_ns: np.ndarray,
+    noise: ImuNoise,
+    bias_gyro: torch.Tensor | np.ndarray | None = None,
+    bias_acc: torch.Tensor | np.ndarray | None = None,
+    scheme: str = "closed_form",
+    device: torch.device | str = "cpu",
+) -> Preintegrated:
+    """Batched preintegration of B arbitrary intervals ``[t0_ns[b], t1_ns[b]]`` ((B,) each) in one vectorised
+    pass -> ``Preintegrated`` with batch dimension B. Biases may be (3,) (shared) or (B, 3) (one per interval).
+    """
+    t0_ns, t1_ns = np.asarray(t0_ns, dtype=np.int64), np.asarray(t1_ns, dtype=np.int64)
+    if t0_ns.ndim != 1 or t0_ns.shape != t1_ns.shape or len(t0_ns) < 1:
+        raise ValueError(f"need (B,) interval starts and ends, B >= 1, got {t0_ns.shape} and {t1_ns.shape}")
+    n = len(t0_ns)
+    pieces = [interval_measurements(imu, t0_ns[k], t1_ns[k], rate_hz=noise.rate_hz) for k in range(n)]
     f64 = dict(dtype=torch.float64, device=device)
     dt = torch.as_tensor(np.concatenate([p[1] for p in pieces]), **f64)
     gyro = torch.as_tensor(np.concatenate([p[2] for p in pieces]), **f64)
@@ -406,5 +467,5 @@ def preintegrate_between(
 
     out = preintegrate_segments(dt, gyro, acc, segment, noise, per_interval(bias_gyro), per_interval(bias_acc),
                                 scheme)
-    out.t0_ns, out.t1_ns = stamps_ns[:-1].copy(), stamps_ns[1:].copy()
+    out.t0_ns, out.t1_ns = t0_ns.copy(), t1_ns.copy()
     return out

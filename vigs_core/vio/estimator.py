@@ -1,11 +1,13 @@
 """Visual-inertial state of the keyframes and the glue between the IMU, the stage machine and dense BA.
 
 :class:`VisualInertialEstimator` keeps, per keyframe, the body velocity and the IMU bias (or one global bias),
-caches the preintegration between consecutive keyframes (re-integrated when the bias estimate moved more than
-``relinearize_bias_threshold`` from the linearisation bias, since the first-order correction of Forster Eq. 44
-degrades with the bias change), builds the :class:`~vigs_core.vio.inertial_terms.InertialTerms` of a BA window,
-predicts new frames from the IMU (:mod:`vigs_core.vio.keyframe_init`) and runs the stage machine
-(:mod:`vigs_core.vio.initialization`). A front end drives it with these calls::
+caches the preintegration between consecutive keyframes (re-integrated, all stale pairs of a window in one batch,
+when the bias estimate moved more than ``relinearize_bias_threshold`` from the linearisation bias, since the
+first-order correction of Forster Eq. 44 degrades with the bias change; a frame predicted from the previous
+keyframe that becomes a keyframe hands its preintegration on to the new pair), builds the
+:class:`~vigs_core.vio.inertial_terms.InertialTerms` of a BA window, predicts new frames from the IMU
+(:mod:`vigs_core.vio.keyframe_init`) and runs the stage machine (:mod:`vigs_core.vio.initialization`). A front
+end drives it with these calls::
 
     add_keyframe(id, t_ns)                      # a new keyframe exists
     predict(ref_id, T_cw_ref, t_ns)             # IMU prior for a frame (None before initialisation)
@@ -25,7 +27,8 @@ import torch
 
 from vigs_core.geometry import se3_inverse
 from vigs_core.imu.inertial_init import inertial_only_init
-from vigs_core.imu.preintegration import Preintegrated, preintegrate, stack_preintegrated
+from vigs_core.imu.preintegration import (Preintegrated, preintegrate, preintegrate_intervals, preintegrate_rotation,
+                                          stack_preintegrated)
 from vigs_core.types import ImuNoise, ImuSamples
 from vigs_core.vio.config import VioConfig
 from vigs_core.vio.inertial_terms import AnchorPrior, InertialState, InertialTerms, MarginalPrior
@@ -77,6 +80,7 @@ class VisualInertialEstimator:
         self.imu_predictions = 0
         self.fallbacks = 0
         self._pre: dict[tuple[int, int], Preintegrated] = {}
+        self._last_predicted: tuple[int, Preintegrated] | None = None   # (reference keyframe id, its prediction's)
         self.marginal: MarginalPrior | None = None
         self.marginalized = 0
 
@@ -111,25 +115,38 @@ class VisualInertialEstimator:
     # ------------------------------------------------------------------ keyframes
     def add_keyframe(self, kf_id: int, t_ns: int, velocity: torch.Tensor | None = None) -> None:
         """Register a keyframe (ids increase with time); velocity and bias start from the previous keyframe."""
-        prev = self.states[max(self.states)] if self.states else None
+        prev_id = max(self.states) if self.states else None
+        prev = None if prev_id is None else self.states[prev_id]
         if prev is not None and int(t_ns) <= prev.t_ns:
             raise ValueError(f"keyframe {kf_id} at {t_ns} ns is not after the previous keyframe ({prev.t_ns} ns)")
         v = velocity if velocity is not None else (prev.velocity.clone() if prev else torch.zeros(3, dtype=F64))
         b = prev.bias.clone() if prev else self.global_bias.clone()
         self.states[kf_id] = KeyframeInertial(int(t_ns), v.to(F64), b)
+        last = self._last_predicted
+        if last is not None and last[0] == prev_id and int(last[1].t1_ns) == int(t_ns):
+            # the frame that became this keyframe was predicted from the previous keyframe: that preintegration is
+            # the pair's (same stamps; preintegrations() still re-integrates it if the bias moved since)
+            self._pre[(prev_id, kf_id)] = last[1]
+        self._last_predicted = None
 
-    def preintegration(self, i: int, j: int) -> Preintegrated:
-        """Preintegration from keyframe ``i`` to ``j`` at ``i``'s bias (cached; re-integrated when stale)."""
-        b = self.bias_of(i)
-        pre = self._pre.get((i, j))
-        if pre is not None:
-            lin = torch.cat((pre.bias_gyro, pre.bias_acc))
-            if float((b - lin).norm()) <= self.config.relinearize_bias_threshold:
-                return pre
-        pre = preintegrate(self.imu, self.states[i].t_ns, self.states[j].t_ns, self.noise, b[:3], b[3:],
-                           self.config.scheme)
-        self._pre[(i, j)] = pre
-        return pre
+    def preintegrations(self, pairs: list[tuple[int, int]]) -> Preintegrated:
+        """Preintegrations from keyframe ``i`` to ``j`` at ``i``'s bias for each ``(i, j)`` of ``pairs``, batched
+        (B = len(pairs)). Cached per pair; the stale ones (none yet, or the bias moved more than
+        ``relinearize_bias_threshold`` from its linearisation bias) are re-integrated in one vectorised pass."""
+        stale = []
+        for i, j in pairs:
+            pre = self._pre.get((i, j))
+            if pre is None or float((self.bias_of(i) - torch.cat((pre.bias_gyro, pre.bias_acc))).norm()) > \
+                    self.config.relinearize_bias_threshold:
+                stale.append((i, j))
+        if stale:
+            b = torch.stack([self.bias_of(i) for i, _ in stale])
+            batch = preintegrate_intervals(self.imu, [self.states[i].t_ns for i, _ in stale],
+                                           [self.states[j].t_ns for _, j in stale], self.noise, b[:, :3], b[:, 3:],
+                                           self.config.scheme)
+            for n, pair in enumerate(stale):
+                self._pre[pair] = batch.item(n)
+        return stack_preintegrated([self._pre[pair] for pair in pairs])
 
     def predict(self, ref_id: int, T_cw_ref: torch.Tensor, t_ns: int) -> KeyframePrediction | None:
         """IMU prediction of the pose at ``t_ns`` from keyframe ``ref_id`` (VIGS-SLAM keyframe initialisation,
@@ -142,6 +159,7 @@ class VisualInertialEstimator:
             return None
         b = self.bias_of(ref_id)
         pre = preintegrate(self.imu, ref.t_ns, int(t_ns), self.noise, b[:3], b[3:], c.scheme)
+        self._last_predicted = (ref_id, pre)
         pred = predict_keyframe(T_cw_ref, ref.velocity, b, pre, self.T_cb, self.gravity_world(),
                                 c.keyframe_init_max_cov_trace)
         if pred.from_imu:
@@ -160,11 +178,10 @@ class VisualInertialEstimator:
         ref = self.states[ref_id]
         if int(t_ns) <= ref.t_ns or not self.imu_covers(ref.t_ns, int(t_ns)):
             return None
-        b = self.bias_of(ref_id)
-        pre = preintegrate(self.imu, ref.t_ns, int(t_ns), self.noise, b[:3], b[3:], c.scheme)
+        dR = preintegrate_rotation(self.imu, ref.t_ns, int(t_ns), self.bias_of(ref_id)[:3], self.noise.rate_hz)
         R_cb = self.T_cb[:3, :3]
         R_wb = T_cw_ref[:3, :3].to(F64).T @ R_cb
-        return (R_wb @ pre.delta_R @ R_cb.T).T
+        return (R_wb @ dR @ R_cb.T).T
 
     # ------------------------------------------------------------------ BA
     def terms(self, ids: list[int], poses: torch.Tensor,
@@ -180,7 +197,7 @@ class VisualInertialEstimator:
         if not self.imu_covers(self.states[ids[0]].t_ns, self.states[ids[-1]].t_ns):
             return None
         joint = self.stage == Stage.JOINT_UNALIGNED
-        pre = stack_preintegrated([self.preintegration(i, j) for i, j in zip(ids[:-1], ids[1:])])
+        pre = self.preintegrations(list(zip(ids[:-1], ids[1:])))
         prior = _bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std)
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
@@ -215,7 +232,7 @@ class VisualInertialEstimator:
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
         self.marginal = marginalize_keyframe(
-            self.marginal, list(ids), poses, vel, biases, stack_preintegrated([self.preintegration(ids[0], ids[1])]),
+            self.marginal, list(ids), poses, vel, biases, self.preintegrations([(ids[0], ids[1])]),
             self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias, gravity=c.gravity,
             weight=c.inertial_weight, bias_prior_std=_bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std),
             visual=visual,
