@@ -171,3 +171,30 @@ def test_driver_views_follow_keyframes_re_expressed_outside_the_window():
     torch.testing.assert_close(after[0].T_WC[:3, 3], s * before[0].T_WC[:3, 3])
     torch.testing.assert_close(after[0].depth, before[0].depth * s)
     assert after[1] is before[1]   # unchanged keyframes keep their cached view
+
+
+def test_final_poses_spread_the_next_keyframes_correction_and_follow_a_similarity():
+    """A frame halfway between keyframe a and the keyframe b made next gets half of the correction BA applied to b
+    (tracked 1.0 m from a, final 0.9 m: the frame tracked at 0.55 m ends at 0.50 m); a uniform loop correction
+    (scale 2) moves all final poses by that similarity, tracked relative poses included."""
+
+    def at(x):   # world->camera pose of an unrotated camera centred at (x, 0, 0)
+        T = torch.eye(4, dtype=D)
+        T[0, 3] = -x
+        return T
+
+    odo = DenseOdometry(INTR, W, H)
+    image = np.zeros((H, W), dtype=np.uint8)
+    disp = torch.full((GRID.size,), 0.5, dtype=D)
+    odo.keyframes[0] = Keyframe(0, 0, image, at(0.0), disp)
+    odo.keyframes[1] = Keyframe(1, 1000, image, at(0.9), disp, tracked=(0, at(1.0)))
+    odo.frames += [_Frame(0, ref=0, rel=at(0.0), keyframe=True), _Frame(500, ref=0, rel=at(0.55)),
+                   _Frame(1000, ref=1, rel=at(0.0), keyframe=True), _Frame(1500, ref=1, rel=at(0.3))]
+    _, poses = odo.final_frame_poses()
+    centres = se3_inverse(poses)[:, :3, 3]
+    np.testing.assert_allclose(centres[:, 0].numpy(), [0.0, 0.50, 0.9, 1.2], atol=1e-12)
+    assert float(centres[:, 1:].abs().max()) < 1e-12
+    C = sim3_exp(torch.tensor([0.1, 0.2, 0.0, 0.0, 0.0, 0.3, math.log(2.0)], dtype=D))
+    apply_to_odometry(odo, {0: C})
+    _, after = odo.final_frame_poses()
+    np.testing.assert_allclose(se3_inverse(after)[:, :3, 3].numpy(), sim3_act(C, centres).numpy(), atol=1e-12)

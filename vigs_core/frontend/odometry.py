@@ -20,7 +20,12 @@ Frames seen before that get their poses then.
 
 Poses are world->camera ``T_cw`` (4, 4) float64 with the first camera as the world. Each frame keeps its pose
 relative to a reference keyframe, so final poses follow later keyframe updates (``final_frame_poses``), while
-``odometry_poses`` holds the causal estimate at the time each frame was processed.
+``odometry_poses`` holds the causal estimate at the time each frame was processed. A frame between keyframe
+``a`` (its reference) and the keyframe ``b`` made next from a frame tracked against ``a`` also takes part of
+the correction BA applied to ``b``: with ``R`` the tracked and ``R*`` the final relative pose of ``b`` to
+``a``, the frame at time fraction ``alpha = (t - t_a) / (t_b - t_a)`` gets ``T = T_rel Exp(alpha Log(R^-1 R*))
+T_a`` (the end-point correction spread linearly in time over the frames in between, in ``a``'s camera frame),
+so the final trajectory has no saw-tooth where tracking overshot and the next keyframe's BA pulled back.
 """
 from __future__ import annotations
 
@@ -37,7 +42,7 @@ from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
 from vigs_core.frontend.keyframe_policy import KeyframePolicy, KeyframePolicyConfig
-from vigs_core.geometry import se3_inverse
+from vigs_core.geometry import se3_exp, se3_inverse, se3_log
 from vigs_core.solver import BAConfig, EdgeSet, Intrinsics, align_pose, bundle_adjust, reproject
 
 
@@ -115,13 +120,16 @@ class OdometryConfig:
 
 @dataclass
 class Keyframe:
-    """A keyframe: id, time (ns), grey image (H, W) uint8, pose ``T_cw`` (4, 4) and disparities (P,)."""
+    """A keyframe: id, time (ns), grey image (H, W) uint8, pose ``T_cw`` (4, 4) and disparities (P,); ``tracked``:
+    the reference keyframe id and the relative pose ``T_cw T_cw(ref)^-1`` (4, 4) its frame was tracked at, when
+    it was made from a tracked frame (module docstring, final poses)."""
 
     id: int
     t_ns: int
     image: np.ndarray
     pose: torch.Tensor
     disp: torch.Tensor
+    tracked: tuple[int, torch.Tensor] | None = None
 
 
 @dataclass
@@ -178,13 +186,31 @@ class DenseOdometry:
 
     def final_frame_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and world->camera poses (N, 4, 4) of every posed frame, relative to the final
-        keyframe poses."""
-        t, poses = [], []
+        keyframe poses, with the next keyframe's correction spread over the frames in between (module
+        docstring)."""
+        correction = {}   # reference keyframe a -> (next keyframe b, Log(R^-1 R*)) (6,)
+        for b in self.keyframes.values():
+            if b.tracked is not None and b.tracked[0] in self.keyframes:
+                a = self.keyframes[b.tracked[0]]
+                final = b.pose @ se3_inverse(a.pose)
+                correction[a.id] = (b, se3_log(se3_inverse(b.tracked[1]) @ final))
+        t, rel, fix, ref = [], [], [], []
         for f in self.frames:
-            if f.ref is not None:
-                t.append(f.t_ns)
-                poses.append(f.rel @ self.keyframes[f.ref].pose)
-        return np.array(t, dtype=np.int64), self._stack(poses)
+            if f.ref is None:
+                continue
+            t.append(f.t_ns)
+            rel.append(f.rel)
+            ref.append(self.keyframes[f.ref].pose)
+            a = self.keyframes[f.ref]
+            if f.keyframe or a.id not in correction:
+                fix.append(torch.zeros(6, dtype=torch.float64))
+                continue
+            b, xi = correction[a.id]
+            fix.append(xi * min(max((f.t_ns - a.t_ns) / (b.t_ns - a.t_ns), 0.0), 1.0))
+        if not t:
+            return np.zeros(0, dtype=np.int64), self._stack([])
+        poses = torch.stack(rel) @ se3_exp(torch.stack(fix)) @ torch.stack(ref)
+        return np.array(t, dtype=np.int64), poses
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""
@@ -241,10 +267,11 @@ class DenseOdometry:
         return torch.where(w >= self.config.min_confidence, w, torch.zeros_like(w))
 
     def _new_keyframe(self, frame_idx: int, image: np.ndarray, pose: torch.Tensor, disp: torch.Tensor) -> Keyframe:
-        kf = Keyframe(self._next_kf, self.frames[frame_idx].t_ns, image, pose, disp)
+        f = self.frames[frame_idx]
+        tracked = (f.ref, f.rel) if f.ref is not None and f.rel is not None else None
+        kf = Keyframe(self._next_kf, f.t_ns, image, pose, disp, tracked)
         self.keyframes[kf.id] = kf
         self._next_kf += 1
-        f = self.frames[frame_idx]
         f.keyframe, f.ref, f.rel = True, kf.id, torch.eye(4, dtype=torch.float64)
         return kf
 

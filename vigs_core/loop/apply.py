@@ -38,12 +38,19 @@ def corrections_for(ids: Iterable[int], corrections: dict[int, torch.Tensor]) ->
             if k in corrections or k > newest}
 
 
+def _scaled_translation(T: torch.Tensor, c: float) -> torch.Tensor:
+    """Copy of the transform ``T`` (4, 4) with its translation times ``c``."""
+    out = T.clone()
+    out[:3, 3] = out[:3, 3] * c
+    return out
+
+
 def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> dict[int, tuple[torch.Tensor, float]]:
     """Correct a :class:`vigs_core.frontend.DenseOdometry` in place.
 
     Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; every
     frame keeps its pose relative to its reference keyframe with the translation scaled by that keyframe's
-    ``c``; the causal poses of the two latest frames (the constant-velocity motion model reads them) are
+    ``c`` (and so does each keyframe's tracked relative pose, :attr:`vigs_core.frontend.odometry.Keyframe.tracked`); the causal poses of the two latest frames (the constant-velocity motion model reads them) are
     recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
     """
     per_kf = corrections_for(sorted(odometry.keyframes), corrections)
@@ -56,9 +63,10 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
         updates[k] = (T_WC, c)
     for f in odometry.frames:
         if f.ref in updates and f.rel is not None:
-            rel = f.rel.clone()
-            rel[:3, 3] = rel[:3, 3] * updates[f.ref][1]
-            f.rel = rel
+            f.rel = _scaled_translation(f.rel, updates[f.ref][1])
+    for kf in odometry.keyframes.values():   # the relative pose each keyframe was tracked at, likewise
+        if kf.tracked is not None and kf.tracked[0] in updates:
+            kf.tracked = (kf.tracked[0], _scaled_translation(kf.tracked[1], updates[kf.tracked[0]][1]))
     posed = [f for f in odometry.frames if f.odom is not None and f.ref is not None][-2:]
     for f in posed:
         f.odom = f.rel @ odometry.keyframes[f.ref].pose
