@@ -33,6 +33,7 @@ import itertools
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -198,10 +199,10 @@ class DenseOdometry:
         for f in self.frames:
             if f.ref is None:
                 continue
+            a = self.keyframes[f.ref]
             t.append(f.t_ns)
             rel.append(f.rel)
-            ref.append(self.keyframes[f.ref].pose)
-            a = self.keyframes[f.ref]
+            ref.append(a.pose)
             if f.keyframe or a.id not in correction:
                 fix.append(torch.zeros(6, dtype=torch.float64))
                 continue
@@ -211,6 +212,17 @@ class DenseOdometry:
             return np.zeros(0, dtype=np.int64), self._stack([])
         poses = torch.stack(rel) @ se3_exp(torch.stack(fix)) @ torch.stack(ref)
         return np.array(t, dtype=np.int64), poses
+
+    def transform_relative_poses(self, fn: Callable[[int, torch.Tensor], torch.Tensor]) -> None:
+        """Replace every pose kept relative to a keyframe -- each frame's ``rel`` and each keyframe's ``tracked``
+        pose -- by ``fn(reference keyframe id, relative pose (4, 4))``: after the map was re-expressed (a loop
+        correction or the IMU alignment scales the reference keyframes' depth and so these translations)."""
+        for f in self.frames:
+            if f.ref is not None and f.rel is not None:
+                f.rel = fn(f.ref, f.rel)
+        for kf in self.keyframes.values():
+            if kf.tracked is not None:
+                kf.tracked = (kf.tracked[0], fn(*kf.tracked))
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""

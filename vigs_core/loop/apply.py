@@ -48,10 +48,10 @@ def _scaled_translation(T: torch.Tensor, c: float) -> torch.Tensor:
 def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> dict[int, tuple[torch.Tensor, float]]:
     """Correct a :class:`vigs_core.frontend.DenseOdometry` in place.
 
-    Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; every
-    frame keeps its pose relative to its reference keyframe with the translation scaled by that keyframe's
-    ``c`` (and so does each keyframe's tracked relative pose, :attr:`vigs_core.frontend.odometry.Keyframe.tracked`); the causal poses of the two latest frames (the constant-velocity motion model reads them) are
-    recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
+    Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; the poses
+    kept relative to a keyframe (frames, tracked keyframe poses: ``transform_relative_poses``) keep their
+    rotation with the translation scaled by that keyframe's ``c``; the causal poses of the two latest frames
+    (the constant-velocity motion model reads them) are recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
     """
     per_kf = corrections_for(sorted(odometry.keyframes), corrections)
     updates: dict[int, tuple[torch.Tensor, float]] = {}
@@ -61,12 +61,8 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
         kf.pose = se3_inverse(T_WC)
         kf.disp = kf.disp / c
         updates[k] = (T_WC, c)
-    for f in odometry.frames:
-        if f.ref in updates and f.rel is not None:
-            f.rel = _scaled_translation(f.rel, updates[f.ref][1])
-    for kf in odometry.keyframes.values():   # the relative pose each keyframe was tracked at, likewise
-        if kf.tracked is not None and kf.tracked[0] in updates:
-            kf.tracked = (kf.tracked[0], _scaled_translation(kf.tracked[1], updates[kf.tracked[0]][1]))
+    odometry.transform_relative_poses(
+        lambda ref, T: _scaled_translation(T, updates[ref][1]) if ref in updates else T)
     posed = [f for f in odometry.frames if f.odom is not None and f.ref is not None][-2:]
     for f in posed:
         f.odom = f.rel @ odometry.keyframes[f.ref].pose

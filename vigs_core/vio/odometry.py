@@ -202,11 +202,8 @@ class VisualInertialOdometry(DenseOdometry):
         """Re-express the whole map in the metric gravity-aligned world (keyframes, disparities, frames)."""
         for kf in self.keyframes.values():
             kf.pose, kf.disp = al.pose(kf.pose), al.disparity(kf.disp)
-            if kf.tracked is not None:
-                kf.tracked = (kf.tracked[0], al.relative(kf.tracked[1]))
+        self.transform_relative_poses(lambda _, T: al.relative(T))
         for f in self.frames:
-            if f.rel is not None:
-                f.rel = al.relative(f.rel)
             if f.odom is not None:
                 f.odom = al.pose(f.odom)
 
