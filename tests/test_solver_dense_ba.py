@@ -239,6 +239,39 @@ def test_align_pose_recovers_frame_pose():
     assert out.rms < 1e-8 and out.inlier_ratio == pytest.approx(1.0)
 
 
+def test_align_pose_float32_projections_and_outliers():
+    """float32 disparities/targets (tracking's type): exact targets give the float64 pose back within float32
+    resolution; with 20 % gross outliers the Huber weights keep the error several times below plain least
+    squares, and the outliers are counted out of the inlier ratio."""
+    poses, disps, coords, edges = make_problem(n=2, grid=(24, 16))
+    target = reproject(poses[:1], poses[1:], disps[:1], coords, INTR).uv[0]
+    T0 = se3_exp(torch.tensor([0.02, -0.01, 0.02, 0.01, 0.01, -0.01], dtype=torch.float64)) @ poses[1]
+    f32 = torch.float32
+    ones = torch.ones(coords.shape[0], dtype=f32)
+    out = align_pose(poses[0], disps[0].to(f32), coords.to(f32), INTR, target.to(f32), ones, T0, iterations=10)
+    assert out.pose.dtype == torch.float64
+    assert (out.pose - poses[1]).abs().max() < 1e-4
+
+    g = torch.Generator().manual_seed(3)
+    bad = torch.rand(coords.shape[0], generator=g) < 0.2
+    noisy = target + bad[:, None] * 20.0 * torch.randn(coords.shape, generator=g, dtype=torch.float64)
+    robust = align_pose(poses[0], disps[0].to(f32), coords.to(f32), INTR, noisy.to(f32), ones, T0, 15, 2.0)
+    plain = align_pose(poses[0], disps[0].to(f32), coords.to(f32), INTR, noisy.to(f32), ones, T0, 15, 1e6)
+    err_robust = float((robust.pose - poses[1]).abs().max())
+    assert err_robust < 0.2 * float((plain.pose - poses[1]).abs().max())
+    assert robust.inlier_ratio == pytest.approx(1.0 - float(bad.double().mean()), abs=0.02)
+
+
+def test_align_pose_stops_on_a_singular_system():
+    """No usable correspondence (all weights zero): the initial pose is returned unchanged, with no inliers."""
+    poses, disps, coords, edges = make_problem(n=2)
+    target = reproject(poses[:1], poses[1:], disps[:1], coords, INTR).uv[0]
+    out = align_pose(poses[0], disps[0], coords, INTR, target, torch.zeros(coords.shape[0], dtype=torch.float64),
+                     poses[0], iterations=5)
+    assert torch.equal(out.pose, poses[0])
+    assert out.inlier_ratio == 0.0 and out.rms == float("inf")
+
+
 def test_fixed_keyframe_disparities_pin_the_scale():
     poses, disps, coords, edges = make_problem()
     p0, d0 = perturb(poses, disps)

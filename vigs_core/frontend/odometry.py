@@ -531,10 +531,9 @@ class DenseOdometry:
         uv, _ = self._warp(kf, pred)
         corr = self._estimate(kf.image, image, uv, forward_backward=False, estimator=self.tracking_estimator)
         t0 = self._tic()
-        dt = self._dtype
-        pose = align_pose(kf.pose.to(dt), kf.disp.to(dt), self.coords.to(dt), self.intr,
-                          torch.from_numpy(corr.target).to(dt), self._weights(corr).to(dt), pred.to(dt),
-                          cfg.tracking_iterations, cfg.ba.huber_delta).pose.double()
+        dt = self._dtype   # the projections' type; the pose stays float64
+        pose = align_pose(kf.pose, kf.disp.to(dt), self.coords, self.intr, torch.from_numpy(corr.target),
+                          self._weights(corr), pred, cfg.tracking_iterations, cfg.ba.huber_delta).pose
         self._toc("tracking", t0)
         f = self.frames[idx]
         f.ref, f.rel, f.odom = kf.id, pose @ se3_inverse(kf.pose), pose

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from vigs_core.geometry.so3 import hat, so3_exp, so3_left_jacobian, so3_left_jacobian_inv, so3_log
+from vigs_core.geometry.so3 import exp_and_left_jacobian, hat, so3_left_jacobian_inv, so3_log
 
 
 def se3_from_rt(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
@@ -44,9 +44,8 @@ def se3_hat(xi: torch.Tensor) -> torch.Tensor:
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """``Exp(xi)`` for twists (..., 6) -> (..., 4, 4): ``R = Exp(phi)``, ``t = J_l(phi) rho``."""
-    phi = xi[..., 3:]
-    trans = (so3_left_jacobian(phi) @ xi[..., :3, None])[..., 0]
-    return se3_from_rt(so3_exp(phi), trans)
+    rot, left_jacobian = exp_and_left_jacobian(xi[..., 3:])
+    return se3_from_rt(rot, (left_jacobian @ xi[..., :3, None])[..., 0])
 
 
 def se3_log(t: torch.Tensor) -> torch.Tensor:

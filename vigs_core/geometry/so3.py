@@ -44,12 +44,26 @@ def _angle(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def _coefficients(phi: torch.Tensor):
-    """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0)."""
+    """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0).
+
+    Below ``_SMALL_ANGLE`` the series stop at ``t^2``: the next terms (``t^4 / 120`` and smaller) are below
+    the float64 resolution of the leading 1, 1/2, 1/6 there."""
     theta, theta2, small = _angle(phi)
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(theta)) / theta**2)
-    c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (theta - torch.sin(theta)) / theta**3)
+    sin, theta2_safe = torch.sin(theta), theta * theta
+    a = torch.where(small, 1.0 - theta2 / 6.0, sin / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2_safe)
+    c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - sin) / (theta2_safe * theta))
     return a, b, c
+
+
+def exp_and_left_jacobian(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``Exp(phi)`` and ``J_l(phi) = I + b [phi]x + c [phi]x^2`` (..., 3, 3) together, sharing the
+    coefficients and ``[phi]x^2`` (what :func:`~vigs_core.geometry.se3.se3_exp` needs)."""
+    a, b, c = (x[..., None, None] for x in _coefficients(phi))
+    k = hat(phi)
+    k2 = k @ k
+    eye = _eye_like(phi)
+    return eye + a * k + b * k2, eye + b * k + c * k2
 
 
 def _eye_like(phi: torch.Tensor) -> torch.Tensor:

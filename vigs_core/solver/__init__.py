@@ -4,7 +4,7 @@ from vigs_core.solver.projective import Intrinsics, Reprojection, pixel_rays, re
 from vigs_core.solver.robust import huber_cost, huber_weight
 from vigs_core.solver.normal_equations import (EdgeSet, VisualSystem, back_substitute, linearize_visual,
                                                residuals, schur_reduce, visual_cost)
-from vigs_core.solver.dense_ba import (AdditionalTerms, BAConfig, BAResult, PoseAlignment, align_pose,
-                                       bundle_adjust)
+from vigs_core.solver.dense_ba import AdditionalTerms, BAConfig, BAResult, bundle_adjust
+from vigs_core.solver.pose_alignment import PoseAlignment, align_pose
 
 __all__ = [name for name in dir() if not name.startswith("_")]

@@ -23,8 +23,7 @@ import torch
 from vigs_core.geometry import se3_exp
 from vigs_core.solver.normal_equations import (EdgeSet, back_substitute, linearize_visual, schur_reduce,
                                                visual_cost)
-from vigs_core.solver.projective import Intrinsics, reproject
-from vigs_core.solver.robust import huber_weight
+from vigs_core.solver.projective import Intrinsics
 
 
 @dataclass
@@ -180,53 +179,3 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         if not accepted or rel < cfg.rel_tol:
             break
     return result
-
-
-@dataclass
-class PoseAlignment:
-    """Outcome of :func:`align_pose`: the world->camera pose (4, 4), the RMS residual of the inlier
-    correspondences (pixels) and the fraction of weighted correspondences within the Huber threshold."""
-
-    pose: torch.Tensor
-    rms: float
-    inlier_ratio: float
-
-
-def align_pose(T_src: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor, intr: Intrinsics,
-               target: torch.Tensor, weight: torch.Tensor, T_init: torch.Tensor, iterations: int = 6,
-               huber_delta: float = 2.0) -> PoseAlignment:
-    """Pose-only Gauss-Newton alignment of one frame against a keyframe with fixed depth (tracking).
-
-    Minimises ``sum_p conf_p rho(|u*_p - pi(T T_src^-1, d_p, p)|)`` over the frame's pose ``T`` (left
-    perturbation; the ``J_j`` block of :mod:`vigs_core.solver.projective`), with a small LM damping.
-
-    Args:
-        T_src: (4, 4) world->camera pose of the keyframe; disp (P,) its disparities at ``coords`` (P, 2).
-        target: (P, 2) measured coordinates in the frame; weight (P,) confidences.
-        T_init: (4, 4) initial world->camera pose of the frame.
-    """
-    T = T_init.clone()
-    eye6 = torch.eye(6, dtype=T.dtype, device=T.device)
-    for _ in range(iterations):
-        proj = reproject(T_src[None], T[None], disp[None], coords, intr, jacobians=True, source_jacobian=False)
-        r = target - proj.uv[0]
-        w = weight * huber_weight(r.norm(dim=-1), huber_delta) * proj.valid[0]
-        J = proj.J_j[0]                                               # (P, 2, 6)
-        WJ = (w[:, None, None] * J).reshape(-1, 6)
-        H = WJ.T @ J.reshape(-1, 6)
-        g = WJ.T @ r.reshape(-1)
-        H = H + eye6 * (1e-4 * H.diagonal().mean() + 1e-9)
-        dx = _solve_spd(H, g)
-        if dx is None:
-            break
-        T = se3_exp(dx) @ T
-        if float(dx.norm()) < 1e-10:
-            break
-    proj = reproject(T_src[None], T[None], disp[None], coords, intr)
-    e = (target - proj.uv[0]).norm(dim=-1)
-    inl = (e < huber_delta) & proj.valid[0] & (weight > 0)
-    wsum = float(weight.sum())
-    rms = float((e[inl] ** 2).mean().sqrt()) if bool(inl.any()) else float("inf")
-    ratio = float(weight[inl].sum()) / wsum if wsum > 0 else 0.0
-    return PoseAlignment(T, rms, ratio)
-

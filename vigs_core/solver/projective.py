@@ -68,6 +68,19 @@ def pixel_rays(coords: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
     return torch.stack((x, y, torch.ones_like(x)), -1)
 
 
+def target_jacobian_entries(xn, yn, d_over_z, intr: Intrinsics) -> tuple:
+    """The 12 entries, row-major (rows u, v; columns rho, phi), of ``d pi/dxi_j = d pi/dP [d I, -[P]x]`` (module
+    docstring) in closed form, from the normalised projection ``xn = X/Z``, ``yn = Y/Z`` and ``d / Z``.
+    Elementwise, so it serves torch tensors (:func:`reproject`) and NumPy arrays
+    (:func:`vigs_core.solver.pose_alignment.align_pose`) alike; the caller stacks them."""
+    fx, fy = intr.fx, intr.fy
+    fdz, gdz = fx * d_over_z, fy * d_over_z
+    xy = xn * yn
+    zero = 0.0 * xn
+    return (fdz, zero, -fdz * xn, -fx * xy, fx * (1 + xn * xn), -fx * yn,
+            zero, gdz, -gdz * yn, -fy * (1 + yn * yn), fy * xy, fy * xn)
+
+
 def reproject(T_i: torch.Tensor, T_j: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor,
               intr: Intrinsics, jacobians: bool = False, source_jacobian: bool = True) -> Reprojection:
     """Project source pixels of keyframes ``i`` into cameras ``j`` (see the module docstring).
@@ -99,12 +112,7 @@ def reproject(T_i: torch.Tensor, T_j: torch.Tensor, disp: torch.Tensor, coords: 
     uv = torch.stack((fx * xn + intr.cx, fy * yn + intr.cy), -1)
     if not jacobians:
         return Reprojection(uv, valid)
-    # closed forms of d pi/dP . dP/dx (see the module docstring), rows (u, v) x columns (rho, phi)
-    fdz, gdz = fx * disp * inv_z, fy * disp * inv_z
-    xy = xn * yn
-    zero = torch.zeros_like(xn)
-    J_j = torch.stack((fdz, zero, -fdz * xn, -fx * xy, fx * (1 + xn * xn), -fx * yn,
-                       zero, gdz, -gdz * yn, -fy * (1 + yn * yn), fy * xy, fy * xn), -1).view(*xn.shape, 2, 6)
+    J_j = torch.stack(target_jacobian_entries(xn, yn, disp * inv_z, intr), -1).view(*xn.shape, 2, 6)
     E, P_ = disp.shape
     Ad = se3_adjoint(T_ji)
     J_i = -(J_j.reshape(E, 2 * P_, 6) @ Ad).reshape(E, P_, 2, 6) if source_jacobian else None
