@@ -33,7 +33,6 @@ import itertools
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -213,16 +212,25 @@ class DenseOdometry:
         poses = torch.stack(rel) @ se3_exp(torch.stack(fix)) @ torch.stack(ref)
         return np.array(t, dtype=np.int64), poses
 
-    def transform_relative_poses(self, fn: Callable[[int, torch.Tensor], torch.Tensor]) -> None:
-        """Replace every pose kept relative to a keyframe -- each frame's ``rel`` and each keyframe's ``tracked``
-        pose -- by ``fn(reference keyframe id, relative pose (4, 4))``: after the map was re-expressed (a loop
-        correction or the IMU alignment scales the reference keyframes' depth and so these translations)."""
-        for f in self.frames:
-            if f.ref is not None and f.rel is not None:
-                f.rel = fn(f.ref, f.rel)
-        for kf in self.keyframes.values():
-            if kf.tracked is not None:
-                kf.tracked = (kf.tracked[0], fn(*kf.tracked))
+    def scale_relative_translations(self, scales: dict[int, float]) -> None:
+        """Multiply the translation of every pose kept relative to a keyframe -- each frame's ``rel`` and each
+        keyframe's ``tracked`` pose -- by the factor ``scales[reference keyframe id]`` (1 for keyframes not in
+        ``scales``), rotations unchanged: what re-expressing the reference keyframes' depth in new units (a
+        loop correction's depth scale, the IMU alignment's metric scale) does to them. One batched product;
+        the new tensors replace the old ones (never edited in place)."""
+        owners = [f for f in self.frames if f.ref is not None and f.rel is not None and f.ref in scales]
+        tracked = [kf for kf in self.keyframes.values() if kf.tracked is not None and kf.tracked[0] in scales]
+        if not owners and not tracked:
+            return
+        rels = torch.stack([f.rel for f in owners] + [kf.tracked[1] for kf in tracked]).clone()
+        factor = torch.tensor([scales[f.ref] for f in owners] + [scales[kf.tracked[0]] for kf in tracked],
+                              dtype=rels.dtype)
+        rels[:, :3, 3] *= factor[:, None]
+        out = rels.unbind(0)
+        for f, rel in zip(owners, out):
+            f.rel = rel
+        for kf, rel in zip(tracked, out[len(owners):]):
+            kf.tracked = (kf.tracked[0], rel)
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""

@@ -19,13 +19,20 @@ from vigs_core.geometry import se3_inverse, sim3_scale
 F64 = torch.float64
 
 
-def corrected_pose(C: torch.Tensor, T_WC: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """Rigid pose ``T'_WC`` (4, 4) and depth scale ``c`` of a keyframe after the correction ``C`` (4, 4)."""
+def corrected_poses(C: torch.Tensor, T_WC: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid poses ``T'_WC`` (..., 4, 4) and depth scales ``c`` (...) of keyframes after the corrections ``C``
+    (..., 4, 4): ``S = C T_WC``, ``c = det(S_R)^(1/3)``, ``T'_WC = [S_R / c | S_t]``."""
     S = C.to(F64) @ torch.as_tensor(T_WC, dtype=F64)
-    c = float(sim3_scale(S))
+    c = sim3_scale(S)
     T = S.clone()
-    T[:3, :3] = S[:3, :3] / c
+    T[..., :3, :3] = S[..., :3, :3] / c[..., None, None]
     return T, c
+
+
+def corrected_pose(C: torch.Tensor, T_WC: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Rigid pose ``T'_WC`` (4, 4) and depth scale ``c`` of one keyframe after the correction ``C`` (4, 4)."""
+    T, c = corrected_poses(C, T_WC)
+    return T, float(c)
 
 
 def corrections_for(ids: Iterable[int], corrections: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
@@ -38,31 +45,26 @@ def corrections_for(ids: Iterable[int], corrections: dict[int, torch.Tensor]) ->
             if k in corrections or k > newest}
 
 
-def _scaled_translation(T: torch.Tensor, c: float) -> torch.Tensor:
-    """Copy of the transform ``T`` (4, 4) with its translation times ``c``."""
-    out = T.clone()
-    out[:3, 3] = out[:3, 3] * c
-    return out
-
-
 def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> dict[int, tuple[torch.Tensor, float]]:
     """Correct a :class:`vigs_core.frontend.DenseOdometry` in place.
 
     Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; the poses
-    kept relative to a keyframe (frames, tracked keyframe poses: ``transform_relative_poses``) keep their
+    kept relative to a keyframe (frames, tracked keyframe poses: ``scale_relative_translations``) keep their
     rotation with the translation scaled by that keyframe's ``c``; the causal poses of the two latest frames
     (the constant-velocity motion model reads them) are recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
     """
     per_kf = corrections_for(sorted(odometry.keyframes), corrections)
     updates: dict[int, tuple[torch.Tensor, float]] = {}
-    for k, C in per_kf.items():
-        kf = odometry.keyframes[k]
-        T_WC, c = corrected_pose(C, se3_inverse(kf.pose))
-        kf.pose = se3_inverse(T_WC)
-        kf.disp = kf.disp / c
-        updates[k] = (T_WC, c)
-    odometry.transform_relative_poses(
-        lambda ref, T: _scaled_translation(T, updates[ref][1]) if ref in updates else T)
+    if per_kf:   # one batched product over all corrected keyframes
+        ids = list(per_kf)
+        T_WC, c = corrected_poses(torch.stack([per_kf[k] for k in ids]),
+                                  se3_inverse(torch.stack([odometry.keyframes[k].pose for k in ids])))
+        poses = se3_inverse(T_WC)
+        for k, pose, T, scale in zip(ids, poses.unbind(0), T_WC.unbind(0), c.tolist()):
+            kf = odometry.keyframes[k]
+            kf.pose, kf.disp = pose, kf.disp / scale
+            updates[k] = (T, scale)
+    odometry.scale_relative_translations({k: scale for k, (_, scale) in updates.items()})
     posed = [f for f in odometry.frames if f.odom is not None and f.ref is not None][-2:]
     for f in posed:
         f.odom = f.rel @ odometry.keyframes[f.ref].pose

@@ -62,12 +62,6 @@ class WorldAlignment:
         out[..., :3, 3] = self.scale * T_cw[..., :3, 3]
         return out
 
-    def relative(self, T_ab: torch.Tensor) -> torch.Tensor:
-        """A camera-to-camera transform (..., 4, 4): translation scaled, rotation unchanged."""
-        out = T_ab.clone()
-        out[..., :3, 3] = self.scale * T_ab[..., :3, 3]
-        return out
-
     def disparity(self, disp: torch.Tensor) -> torch.Tensor:
         """Inverse depths (any shape) in metric units: ``d / s``."""
         return disp / self.scale

@@ -202,7 +202,7 @@ class VisualInertialOdometry(DenseOdometry):
         """Re-express the whole map in the metric gravity-aligned world (keyframes, disparities, frames)."""
         for kf in self.keyframes.values():
             kf.pose, kf.disp = al.pose(kf.pose), al.disparity(kf.disp)
-        self.transform_relative_poses(lambda _, T: al.relative(T))
+        self.scale_relative_translations(dict.fromkeys(self.keyframes, al.scale))
         for f in self.frames:
             if f.odom is not None:
                 f.odom = al.pose(f.odom)
