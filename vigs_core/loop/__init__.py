@@ -5,7 +5,7 @@ from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrected_p
 from vigs_core.loop.closure import LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig, LoopDetectionConfig, LoopGraphConfig, LoopVerificationConfig
 from vigs_core.loop.detection import KeyframeView, LoopDecision, LoopDetector, LoopEdge
-from vigs_core.loop.driver import LoopClosureDriver, keyframe_view
+from vigs_core.loop.driver import LoopClosureDriver, keyframe_views
 from vigs_core.loop.pgba import KeyframePoseGraph, PGBAResult, run_pgba
 from vigs_core.loop.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphResult, optimize_pose_graph
 from vigs_core.loop.two_view import (TwoViewCorrespondences, TwoViewResult, edge_information,
@@ -16,5 +16,5 @@ __all__ = [
     "LoopDetectionConfig", "LoopDetector", "LoopEdge", "LoopGraphConfig", "LoopStats", "LoopVerificationConfig",
     "PGBAResult", "PoseGraph", "PoseGraphConfig", "PoseGraphResult", "TwoViewCorrespondences", "TwoViewResult",
     "apply_to_mapper", "apply_to_odometry", "corrected_pose", "corrections_for", "edge_information",
-    "estimate_relative_sim3", "keyframe_view", "optimize_pose_graph", "run_pgba",
+    "estimate_relative_sim3", "keyframe_views", "optimize_pose_graph", "run_pgba",
 ]

@@ -36,12 +36,17 @@ from vigs_core.loop.two_view import TwoViewCorrespondences, edge_information
 F64 = torch.float64
 
 
-def keyframe_view(kf: Any, unit: float = 1.0) -> KeyframeView:
-    """The :class:`KeyframeView` of a frontend keyframe (``pose`` world->camera, ``disp`` grid inverse depth)
-    whose depth units are ``unit`` (see :class:`KeyframeView`)."""
-    disp = kf.disp.to(F64)
+def keyframe_views(kfs: list[Any], units: list[float]) -> list[KeyframeView]:
+    """The :class:`KeyframeView` of frontend keyframes (``pose`` world->camera, ``disp`` grid inverse depth) whose
+    depth units are ``units`` (see :class:`KeyframeView`), built in one batch (a loop correction changes every
+    keyframe at once)."""
+    if not kfs:
+        return []
+    T_WC = se3_inverse(torch.stack([kf.pose for kf in kfs]).to(F64))
+    disp = torch.stack([kf.disp for kf in kfs]).to(F64)
     depth = torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
-    return KeyframeView(int(kf.id), kf.image, se3_inverse(kf.pose.to(F64)), depth, unit)
+    return [KeyframeView(int(kf.id), kf.image, T, d, unit)
+            for kf, T, d, unit in zip(kfs, T_WC.unbind(0), depth.unbind(0), units)]
 
 
 def _correspondences(corr: Any) -> TwoViewCorrespondences:
@@ -129,13 +134,11 @@ class LoopClosureDriver:
         """Views of all keyframes, rebuilt where the keyframe's pose or disparity changed since (BA in the
         window, the visual-inertial world alignment that re-expresses every keyframe, a loop correction: the
         frontend replaces these tensors, it never edits them in place), cached otherwise."""
-        views = {}
-        for k, kf in self.odometry.keyframes.items():
-            cached = self._views.get(k)
-            if cached is None or cached[0] is not kf.pose or cached[1] is not kf.disp:
-                cached = self._views[k] = (kf.pose, kf.disp, keyframe_view(kf, self.closure.unit(k)))
-            views[k] = cached[2]
-        return views
+        stale = [kf for k, kf in self.odometry.keyframes.items()
+                 if k not in self._views or self._views[k][0] is not kf.pose or self._views[k][1] is not kf.disp]
+        for kf, view in zip(stale, keyframe_views(stale, [self.closure.unit(kf.id) for kf in stale])):
+            self._views[kf.id] = (kf.pose, kf.disp, view)
+        return {k: self._views[k][2] for k in self.odometry.keyframes}
 
     def _metric(self) -> bool:
         vio = getattr(self.odometry, "vio", None)
