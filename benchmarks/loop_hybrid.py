@@ -8,7 +8,8 @@ the inner pinhole camera as ``vigs run`` does; no rendering, so whole-length run
 that revisits every place: the case loop closure is for (the whole V1_01 forward then backward is the long
 revisiting path). The dense monocular odometry (:class:`vigs_core.frontend.DenseOdometry`; with ``--imu`` the
 visual-inertial one, forward runs only) runs twice on the same frames, without and with loop closure
-(:class:`vigs_core.loop.LoopClosureDriver`, detection and PGBA on its worker thread). Reported per run:
+(:class:`vigs_core.loop.LoopClosureDriver`, detection and PGBA on its worker thread: this benchmark reads the
+loop graph and decisions, which a worker process would keep to itself). Reported per run:
 
 * ATE RMSE of the keyframe-corrected camera trajectory of every posed frame, Sim(3) alignment (monocular);
 * loops found / candidates rejected, PGBA runs and the mean wall time of one PGBA;
@@ -177,7 +178,7 @@ def run(seq: dict, loop: bool, psnr: bool, mapper_iterations: int, psnr_every: i
     else:
         odo = DenseOdometry(intr, cam.width, cam.height)
     mappers = {"updated": _mapper(cam, mapper_iterations), "not updated": _mapper(cam, mapper_iterations)} if psnr else {}
-    driver = LoopClosureDriver(LoopConfig(), odo, mapper=mappers.get("updated")) if loop else None
+    driver = LoopClosureDriver(LoopConfig(process=False), odo, mapper=mappers.get("updated")) if loop else None
     fed: set[int] = set()
     t0 = time.perf_counter()
     mapping_s = 0.0

@@ -1,10 +1,11 @@
 """Applying PGBA corrections: the frontend's keyframes, disparities and frames move as the Sim(3) says; the
-driver runs loop closure beside a DenseOdometry (detection and PGBA on the worker thread) and corrects it; PGBA
-never blocks the caller."""
+driver runs loop closure beside a DenseOdometry (detection and PGBA in a worker process or thread) and corrects
+it; PGBA never blocks the caller; the worker process hands its errors to the caller."""
 import math
 import time
 
 import numpy as np
+import pytest
 import torch
 
 from loop_synthetic import circle_sequence, drifted_chain
@@ -15,6 +16,8 @@ from vigs_core.frontend.odometry import DenseOdometry, Keyframe, _Frame  # the r
 from vigs_core.geometry import se3_inverse, sim3_act, sim3_exp
 from vigs_core.loop import (LoopClosure, LoopClosureDriver, LoopConfig, LoopEdge, apply_to_odometry,
                             corrected_pose, corrections_for)
+from vigs_core.loop.driver import keyframe_views
+from vigs_core.loop.process import LoopClosureProcess
 from vigs_core.solver import Intrinsics, pixel_rays
 
 D = torch.float64
@@ -99,13 +102,35 @@ def test_pgba_runs_beside_the_caller():
     closure.close()
 
 
-def test_driver_closes_the_loop_of_a_drifting_odometry():
+class BrokenInformation:
+    """An odometry-edge information source that fails on the worker (picklable, for the worker process)."""
+
+    def __call__(self):
+        raise ValueError("broken information")
+
+
+def test_worker_process_hands_its_errors_to_the_caller():
+    odo = small_odometry(2)
+    views = keyframe_views([odo.keyframes[0], odo.keyframes[1]], [1.0, 1.0])
+    closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
+    closure.add_keyframe(views[0], [])
+    closure.add_keyframe(views[1], views[:1], BrokenInformation())
+    with pytest.raises(RuntimeError, match="broken information"):
+        closure.wait()
+    assert not closure.pending and closure.poll() is None   # reported once; the worker goes on
+    closure.close()
+    assert closure.stats.loops_found == 0
+
+
+@pytest.mark.parametrize("process", [True, False], ids=["process", "thread"])
+def test_driver_closes_the_loop_of_a_drifting_odometry(process):
     torch.set_num_threads(1)
     n = 66
     truth, images, true_depths = circle_sequence(n, W, H, INTR.fx, GRID.stride)
     est, sigma = drifted_chain(truth, rot_per_step=0.0015, log_scale_per_step=0.006, trans_noise=0.002)
     odo = DenseOdometry(INTR, W, H)
-    driver = LoopClosureDriver(LoopConfig(), odo)
+    driver = LoopClosureDriver(LoopConfig(process=process), odo)
+    assert isinstance(driver.closure, LoopClosureProcess) == process
     flow = DISFlowEstimator(GRID)
     disp0 = [1.0 / (true_depths[k] * sigma[k]) for k in range(n)]
     for k in range(n):

@@ -109,7 +109,11 @@ class LoopConfig:
         enabled: run loop closure in the pipeline (``loop.enabled``).
         detection, verification, graph: see the respective dataclasses.
         pose_graph: Sim(3) LM settings of the PGBA (Huber on loop edges).
-        asynchronous: run PGBA on a worker thread beside tracking (False: run it inline, for tests).
+        asynchronous: run detection and PGBA beside tracking (False: run them inline, for tests).
+        process: asynchronous work in a child process (:mod:`vigs_core.loop.process`) rather than a thread of the
+            tracking process (the loop-closure thread's Python work made tracking wait for the interpreter lock);
+            used by the in-process pipeline's :class:`~vigs_core.loop.driver.LoopClosureDriver`.
+        process_nice: niceness increment of that child process: on a saturated CPU tracking keeps its core.
     """
 
     enabled: bool = True
@@ -118,3 +122,5 @@ class LoopConfig:
     graph: LoopGraphConfig = field(default_factory=LoopGraphConfig)
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     asynchronous: bool = True
+    process: bool = True
+    process_nice: int = 10

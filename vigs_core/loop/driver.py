@@ -15,23 +15,30 @@ visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1
    standard deviation ``sigma_metric_log_scale``: the IMU observes the scale at each keyframe, so a loop
    corrects position and orientation drift and does not trade the metric scale away.
 
-Detection, the odometry-edge information and PGBA run on the loop-closure worker thread; the tracking thread
-only builds keyframe views (cached for keyframes that left the frontend's window) and applies corrections.
+Detection, the odometry-edge information and PGBA run on the loop-closure worker: a child process by default
+(:mod:`vigs_core.loop.process`, ``LoopConfig.process``), else a thread; the tracking thread only builds keyframe
+views (cached for keyframes that left the frontend's window, sent to a child process once per change) and
+applies corrections.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Callable
 
+import numpy as np
 import torch
 
+from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowEstimator
 from vigs_core.geometry import se3_inverse
 from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrections_for
 from vigs_core.loop.closure import LoopClosure
-from vigs_core.loop.config import LoopConfig
+from vigs_core.loop.config import LoopConfig, LoopVerificationConfig
 from vigs_core.loop.detection import KeyframeView
 from vigs_core.loop.pgba import PGBAResult
+from vigs_core.loop.process import LoopClosureProcess
 from vigs_core.loop.two_view import TwoViewCorrespondences, edge_information
+from vigs_core.solver import Intrinsics
 
 F64 = torch.float64
 
@@ -47,6 +54,33 @@ def keyframe_views(kfs: list[Any], units: list[float]) -> list[KeyframeView]:
     depth = torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
     return [KeyframeView(int(kf.id), kf.image, T, d, unit)
             for kf, T, d, unit in zip(kfs, T_WC.unbind(0), depth.unbind(0), units)]
+
+
+@dataclass
+class OdometryEdgeInformation:
+    """The information of the odometry edge ``(a, b)`` from the frontend's dense correspondences of the pair
+    (:func:`~vigs_core.loop.two_view.edge_information`), computed when called (on the loop-closure worker): the
+    keyframes' poses ``T_WC`` (4, 4) and grid depths (P,) at registration (float64 arrays: they pickle fast), the
+    correspondences ``a -> b`` and, when the frontend has them, ``b -> a``. Picklable, for the worker process."""
+
+    a: int
+    b: int
+    T_WC_a: np.ndarray
+    T_WC_b: np.ndarray
+    depth_a: np.ndarray
+    depth_b: np.ndarray
+    forward: Correspondences
+    backward: Correspondences | None
+    grid: PixelGrid
+    intr: Intrinsics
+    verification: LoopVerificationConfig
+
+    def __call__(self) -> dict[int, torch.Tensor]:
+        Z = torch.from_numpy(np.linalg.inv(self.T_WC_a) @ self.T_WC_b)
+        back = None if self.backward is None else _correspondences(self.backward)
+        info = edge_information(Z, torch.from_numpy(self.depth_a), torch.from_numpy(self.depth_b),
+                                _correspondences(self.forward), back, self.grid, self.intr, self.verification)
+        return {self.a: info}
 
 
 def _correspondences(corr: Any) -> TwoViewCorrespondences:
@@ -72,8 +106,11 @@ class LoopClosureDriver:
         self.on_update = on_update
         # the worker's own instance, with the per-frame tracking settings: loop pairs are verified by a full
         # two-view solve, which the keyframe edges' finer (about 3x dearer) flow does not make more reliable
-        estimator = DISFlowEstimator(odometry.grid, odometry.config.tracking_flow)
-        self.closure = LoopClosure(config, estimator, odometry.intr)
+        if config.asynchronous and config.process:
+            self.closure = LoopClosureProcess(config, odometry.grid, odometry.config.tracking_flow, odometry.intr)
+        else:
+            self.closure = LoopClosure(config, DISFlowEstimator(odometry.grid, odometry.config.tracking_flow),
+                                       odometry.intr)
         self.corrections_applied = 0
         self._registered: list[int] = []
         # cached views, with the keyframe's pose and disparity tensors they were built from
@@ -91,7 +128,12 @@ class LoopClosureDriver:
                 history = [views[i] for i in self._registered]
                 prev = self._registered[-1] if self._registered else None
                 edges = {e: self.odometry.edges[e] for e in ((prev, k), (k, prev)) if e in self.odometry.edges}
-                info = (lambda a=views.get(prev), b=views[k], e=edges: self._information(a, b, e))
+                a = views.get(prev)
+                b = views[k]
+                info = None if a is None or (prev, k) not in edges else OdometryEdgeInformation(
+                    prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), a.depth.numpy().copy(),
+                    b.depth.numpy().copy(), edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
+                    self.odometry.intr, self.config.verification)
                 self.closure.add_keyframe(views[k], history, info)
                 self._registered.append(k)
         if self.closure.pending:
@@ -110,7 +152,8 @@ class LoopClosureDriver:
         self.closure.close()
 
     def _start_pgba(self) -> None:
-        poses = {k: se3_inverse(self.odometry.keyframes[k].pose.to(F64)) for k in self._registered}
+        T_WC = se3_inverse(torch.stack([self.odometry.keyframes[k].pose for k in self._registered]).to(F64))
+        poses = dict(zip(self._registered, T_WC.unbind(0)))
         self.closure.start_pgba(poses, self._metric())
 
     def apply(self, result: PGBAResult) -> dict[int, tuple[torch.Tensor, float]]:
@@ -143,17 +186,6 @@ class LoopClosureDriver:
     def _metric(self) -> bool:
         vio = getattr(self.odometry, "vio", None)
         return bool(vio is not None and getattr(vio, "metric", False))
-
-    def _information(self, a: KeyframeView | None, b: KeyframeView, edges: dict) -> dict[int, torch.Tensor] | None:
-        """Information of the odometry edge (a, b) from the frontend's correspondences of the pair (worker
-        thread); None (configured standard deviations) without them."""
-        if a is None or (a.id, b.id) not in edges:
-            return None
-        Z = torch.linalg.inv(a.T_WC) @ b.T_WC
-        back = _correspondences(edges[(b.id, a.id)]) if (b.id, a.id) in edges else None
-        info = edge_information(Z, a.depth, b.depth, _correspondences(edges[(a.id, b.id)]), back, self.odometry.grid,
-                                self.odometry.intr, self.config.verification)
-        return {a.id: info}
 
     def report(self) -> dict:
         """Loop-closure numbers for report.json."""

@@ -21,8 +21,8 @@ The world frame is the first camera's at an arbitrary monocular scale (hence the
 and ``imu.enabled`` the odometry is visual-inertial (:mod:`vigs_core.vio`): once the IMU is initialised the world
 is metric and gravity-aligned, ``velocity.txt`` holds every posed frame's body velocity (m/s) and report.json
 adds ``vio`` (stage, scale history, biases, keyframe states) and ``accuracy_se3`` (no scale correction).
-With ``loop.enabled`` loop closure (:class:`vigs_core.loop.LoopClosureDriver`: detection and Sim(3) PGBA on a
-worker thread) corrects the keyframes as it goes; report.json adds ``loop`` (candidates, loops found and
+With ``loop.enabled`` loop closure (:class:`vigs_core.loop.LoopClosureDriver`: detection and Sim(3) PGBA in a
+worker process) corrects the keyframes as it goes; report.json adds ``loop`` (candidates, loops found and
 rejected, PGBA runs and seconds). With ``mapping.enabled`` the Gaussian mapper
 (:class:`vigs_core.system.mapping.OnlineMapping`) maps the keyframes on a worker thread: ``map.ply`` (3DGS
 layout) and ``map.json`` (keyframes) are written and report.json adds ``mapping`` (Gaussians, keyframes mapped,

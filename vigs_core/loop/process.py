@@ -1,0 +1,240 @@
+"""Loop closure in a child process: the caller-side interface of :class:`~vigs_core.loop.closure.LoopClosure`
+(``add_keyframe``, ``pending``, ``start_pgba``, ``poll``, ``record_applied``, ``unit``, ``wait``, ``close``,
+``stats``) with detection, verification and PGBA running in a separate Python process.
+
+Why a process: on the 2-core CPU this project targets, the loop-closure worker *thread* shares the interpreter
+lock with tracking. Its Python-heavy work (two-view refinement, PGBA's small tensor operations) made tracking
+wait for the lock: on hybrid MH_03 (vision only) the main thread took 145 s with the loop thread against 118 s
+without loop closure, although the worker needs well under one core. A child process shares no lock with
+tracking; it runs at a lower scheduling priority (``LoopConfig.process_nice``) so that on a saturated machine
+tracking keeps its core and loop closure uses what is left.
+
+Protocol (one duplex pipe, messages handled in order by the child, an ``inline`` :class:`LoopClosure` there):
+
+* ``("views", [(id, T_WC, depth, unit, image or None)])``: keyframe views new or changed since last sent (the
+  image only with a keyframe's first view: it never changes);
+* ``("keyframe", id, history_ids, information)``: :meth:`LoopClosure.add_keyframe` on the child's views; the
+  information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
+* ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
+
+The parent never blocks on the pipe: its messages are pickled on the caller's thread and written by a sender
+thread, so the child can always answer (a 7 MB batch of views after a loop correction and the child's
+answers filled the two pipe buffers at once and deadlocked both sides when the caller wrote them itself).
+Messages are pickled with the standard pickler (``send_bytes``): multiprocessing's own would hand every torch
+tensor over in shared memory, one segment per tensor. Tensors that may be views of a larger batch (keyframe
+views, PGBA corrections) travel as copies of their own elements, not their whole storage.
+
+The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
+in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
+job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while ``loops_found > loops_covered``.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import pickle
+import queue
+import threading
+import traceback
+from dataclasses import replace
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from vigs_core.frontend.correspondence import PixelGrid
+from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
+from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
+from vigs_core.loop.config import LoopConfig
+from vigs_core.loop.detection import KeyframeView
+from vigs_core.loop.pgba import PGBAResult
+from vigs_core.solver import Intrinsics
+
+
+def _send(conn: Any, msg: tuple) -> None:
+    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _recv(conn: Any) -> tuple:
+    return pickle.loads(conn.recv_bytes())
+
+
+def _array(t: torch.Tensor) -> np.ndarray:
+    """A tensor as a NumPy array for the pipe: NumPy pickles only the elements of a view, and about 20 times
+    faster than torch pickles a tensor's storage (8 s of the main thread on hybrid MH_03 before)."""
+    return t.detach().cpu().numpy()
+
+
+def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, intr: Intrinsics) -> None:
+    """The child process: an inline :class:`LoopClosure` driven by the parent's messages (module docstring)."""
+    import cv2
+
+    if config.process_nice:
+        os.nice(config.process_nice)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    closure = LoopClosure(replace(config, asynchronous=False), DISFlowEstimator(grid, flow), intr)
+    views: dict[int, KeyframeView] = {}
+    covered = 0
+    while True:
+        try:
+            msg = _recv(conn)
+        except EOFError:   # the parent went away
+            return
+        kind = msg[0]
+        try:
+            if kind == "views":
+                for k, T_WC, depth, unit, image in msg[1]:
+                    views[k] = KeyframeView(k, views[k].image if image is None else image, torch.from_numpy(T_WC),
+                                            torch.from_numpy(depth), unit)
+            elif kind == "keyframe":
+                _, k, history, information = msg
+                closure.add_keyframe(views[k], [views[i] for i in history], information)
+            elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
+                                                           msg[2]):
+                _send(conn, ("result", None))
+            elif kind == "applied":
+                closure.record_applied(msg[1])
+            result = closure.poll()   # re-raises a job's error
+            if result is not None:
+                covered = result.loops
+                _send(conn, ("result", replace(result, corrections={k: _array(C) for k, C in
+                                                                    result.corrections.items()})))
+        except Exception:   # noqa: BLE001 - handed to the parent, which raises it from poll()
+            _send(conn, ("error", traceback.format_exc()))
+        _send(conn, ("state", closure.stats.loops_found, covered))
+        if kind in ("sync", "close"):
+            _send(conn, ("synced" if kind == "sync" else "closed", closure.stats))
+        if kind == "close":
+            return
+
+
+class LoopClosureProcess:
+    """:class:`LoopClosure`'s caller side with the work in a child process (module docstring).
+
+    Args:
+        config: loop-closure settings (``process_nice``: the child's niceness increment).
+        grid: the keyframes' depth grid; flow: DIS settings of the child's correspondence estimator.
+        intrinsics: pinhole intrinsics of the keyframe images.
+    """
+
+    def __init__(self, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, intrinsics: Intrinsics) -> None:
+        self.config = config
+        self.stats = LoopStats()
+        self.units: dict[int, float] = {}
+        ctx = mp.get_context("spawn")   # no fork of a process that runs threads
+        self._conn, child_conn = ctx.Pipe()
+        self._process = ctx.Process(target=_child, args=(child_conn, config, grid, flow, intrinsics),
+                                    name="vigs-loop-closure", daemon=True)
+        self._process.start()
+        child_conn.close()
+        self._outbox: queue.Queue = queue.Queue()
+        self._sender = threading.Thread(target=self._write, name="loop-closure-sender", daemon=True)
+        self._sender.start()
+        self._sent: dict[int, KeyframeView] = {}
+        self._found = 0
+        self._covered = 0
+        self._in_flight = False
+        self._result: PGBAResult | None = None
+        self._error: str | None = None
+
+    # ------------------------------------------------------------------ messages to and from the child
+    def _post(self, msg: tuple) -> None:
+        self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def _write(self) -> None:
+        while (data := self._outbox.get()) is not None:
+            try:
+                self._conn.send_bytes(data)
+            except OSError:   # the child is gone; poll() reports its error if it sent one
+                return
+
+    def _handle(self, msg: tuple) -> None:
+        kind = msg[0]
+        if kind == "state":   # an answer sent before the child started the PGBA posted last covers fewer loops
+            self._found, self._covered = msg[1], max(self._covered, msg[2])
+        elif kind in ("synced", "closed"):
+            self.stats = msg[1]
+        elif kind == "result":
+            result = msg[1]
+            if result is not None:
+                result = replace(result, corrections={k: torch.from_numpy(C) for k, C in result.corrections.items()})
+            self._result, self._in_flight = result, False
+        elif kind == "error":
+            self._error, self._in_flight = msg[1], False
+
+    def _drain(self) -> None:
+        while self._conn.poll(0):
+            self._handle(_recv(self._conn))
+
+    def _await(self, kind: str) -> None:
+        while True:
+            try:
+                msg = _recv(self._conn)
+            except EOFError as err:
+                raise RuntimeError(f"the loop-closure process ended (exit code {self._process.exitcode})") from err
+            self._handle(msg)
+            if msg[0] == kind:
+                return
+
+    # ------------------------------------------------------------------ LoopClosure's caller side
+    def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
+                     odometry_information: InformationSource = None) -> None:
+        """Send the views not yet in the child (or changed since) and queue ``new`` for detection there."""
+        changed = [v for v in (*history, new) if self._sent.get(v.id) is not v]
+        if changed:
+            self._post(("views", [(v.id, _array(v.T_WC), _array(v.depth), v.unit,
+                                          None if v.id in self._sent else v.image) for v in changed]))
+            self._sent.update({v.id: v for v in changed})
+        self._post(("keyframe", new.id, [v.id for v in history], odometry_information))
+
+    @property
+    def pending(self) -> bool:
+        """Loops accepted by the child that no started PGBA covers yet, and none in flight or waiting to be
+        polled (so the caller builds PGBA's pose snapshot only when :meth:`start_pgba` will take it)."""
+        self._drain()
+        return self._found > self._covered and not self._in_flight and self._result is None
+
+    def start_pgba(self, poses: dict[int, torch.Tensor], metric: bool = False) -> bool:
+        """Queue PGBA in the child when :attr:`pending`; True when queued."""
+        if not self.pending:
+            return False
+        self._post(("pgba", {k: _array(T) for k, T in poses.items()}, metric))
+        self._covered = self._found   # until the child says which loops its graph held
+        self._in_flight = True
+        return True
+
+    def record_applied(self, scales: dict[int, float]) -> None:
+        """Corrections with depth scales ``{id: c}`` were applied (see :meth:`LoopClosure.record_applied`)."""
+        for k, c in scales.items():
+            self.units[k] = self.units.get(k, 1.0) * float(c)
+        self._post(("applied", {k: float(c) for k, c in scales.items()}))
+
+    def unit(self, kf_id: int) -> float:
+        """Current depth units of a keyframe (product of the applied correction scales)."""
+        return self.units.get(kf_id, 1.0)
+
+    def poll(self) -> PGBAResult | None:
+        """A finished PGBA's corrections (once), else None; raises an error of the child."""
+        self._drain()
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise RuntimeError(f"loop closure failed in its worker process:\n{err}")
+        out, self._result = self._result, None
+        return out
+
+    def wait(self) -> PGBAResult | None:
+        """Block until the child has handled every message sent so far, then :meth:`poll`."""
+        self._post(("sync",))
+        self._await("synced")
+        return self.poll()
+
+    def close(self) -> None:
+        """Let the child finish its queue and exit."""
+        if self._process.is_alive():
+            self._post(("close",))
+            self._await("closed")
+        self._outbox.put(None)
+        self._sender.join()
+        self._process.join(timeout=10)
+        self._conn.close()
