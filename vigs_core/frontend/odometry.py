@@ -506,13 +506,12 @@ class DenseOdometry:
     def _translation_flow(self, kf: Keyframe, rel: torch.Tensor, corr: Correspondences) -> float:
         """Confidence-weighted mean flow (pixels) that the translation of ``rel = T_frame T_kf^-1`` (4, 4)
         causes: projections of the keyframe's points under ``rel`` minus under its rotation alone."""
-        rot = rel.clone()
-        rot[:3, 3] = 0.0
-        eye = torch.eye(4, dtype=rel.dtype)[None]
-        full = reproject(eye, rel[None], kf.disp[None], self.coords, self.intr)
-        rot_only = reproject(eye, rot[None], kf.disp[None], self.coords, self.intr)
-        w = self._weights(corr) * full.valid[0] * rot_only.valid[0]
-        d = (full.uv[0] - rot_only.uv[0]).norm(dim=-1)
+        targets = torch.stack((rel, rel))
+        targets[1, :3, 3] = 0.0                                       # rotation only
+        proj = reproject(torch.eye(4, dtype=rel.dtype).expand(2, 4, 4), targets, kf.disp.expand(2, -1),
+                         self.coords, self.intr)
+        w = self._weights(corr) * proj.valid.all(0)
+        d = (proj.uv[0] - proj.uv[1]).norm(dim=-1)
         return float((w * d).sum() / w.sum()) if float(w.sum()) > 0 else 0.0
 
     def _predict_pose(self) -> torch.Tensor:
