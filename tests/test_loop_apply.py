@@ -122,6 +122,14 @@ def test_worker_process_hands_its_errors_to_the_caller():
     assert closure.stats.loops_found == 0
 
 
+def test_a_dead_worker_process_is_reported():
+    closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
+    closure._process.kill()
+    closure._process.join()
+    with pytest.raises(RuntimeError, match="loop-closure process ended"):
+        closure.wait()
+
+
 @pytest.mark.parametrize("process", [True, False], ids=["process", "thread"])
 def test_driver_closes_the_loop_of_a_drifting_odometry(process):
     torch.set_num_threads(1)

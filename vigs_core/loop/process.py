@@ -163,19 +163,21 @@ class LoopClosureProcess:
         elif kind == "error":
             self._error, self._in_flight = msg[1], False
 
+    def _receive(self) -> tuple:
+        try:
+            return _recv(self._conn)
+        except (EOFError, OSError) as err:
+            self._process.join(timeout=1)
+            raise RuntimeError(f"the loop-closure process ended (exit code {self._process.exitcode})") from err
+
     def _drain(self) -> None:
         while self._conn.poll(0):
-            self._handle(_recv(self._conn))
+            self._handle(self._receive())
 
     def _await(self, kind: str) -> None:
-        while True:
-            try:
-                msg = _recv(self._conn)
-            except EOFError as err:
-                raise RuntimeError(f"the loop-closure process ended (exit code {self._process.exitcode})") from err
+        while (msg := self._receive())[0] != kind:
             self._handle(msg)
-            if msg[0] == kind:
-                return
+        self._handle(msg)
 
     # ------------------------------------------------------------------ LoopClosure's caller side
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
