@@ -51,7 +51,7 @@ PARAMS = [
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
     ParamSpec("torch_threads", 1, "torch and OpenCV CPU threads of this process"),
 ]
-PARAMS += dataclass_specs(LoopConfig, "loop.", skip=("enabled",))
+PARAMS += dataclass_specs(LoopConfig, "loop.", skip=("enabled", "process", "process_nice"))  # the node is a process
 PARAMS += dataclass_specs(DISFlowConfig, "flow.")
 
 

@@ -51,7 +51,8 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
     Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; the poses
     kept relative to a keyframe (frames, tracked keyframe poses: ``scale_relative_translations``) keep their
     rotation with the translation scaled by that keyframe's ``c``; the causal poses of the two latest frames
-    (the constant-velocity motion model reads them) are recomputed from their reference keyframes. Returns ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
+    (the constant-velocity motion model reads them) are recomputed from their reference keyframes. Returns
+    ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
     """
     per_kf = corrections_for(sorted(odometry.keyframes), corrections)
     updates: dict[int, tuple[torch.Tensor, float]] = {}

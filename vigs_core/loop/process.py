@@ -26,7 +26,8 @@ views, PGBA corrections) travel as copies of their own elements, not their whole
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
-job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while ``loops_found > loops_covered``.
+job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while
+``loops_found > loops_covered``.
 """
 from __future__ import annotations
 
