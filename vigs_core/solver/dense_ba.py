@@ -129,11 +129,13 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         return c + float(extra.cost(T, st)) if extra is not None else c
 
     result = BAResult(poses, disps, extra_state)
-    cost0 = total_cost(poses, disps, extra_state)
-    result.costs.append(cost0)
+    cost0 = None
     for it in range(cfg.iterations):
         system = linearize_visual(result.poses.to(vd), result.disps.to(vd), v_edges, v_coords, intr,
                                   cfg.huber_delta)
+        if cost0 is None:   # the starting cost: the first linearisation sums the same robust cost
+            cost0 = float(system.cost) + (float(extra.cost(poses, extra_state)) if extra is not None else 0.0)
+            result.costs.append(cost0)
         if fixed_disparity is not None:
             system.freeze_disparities(fixed_disparity)
         if extra is not None:
