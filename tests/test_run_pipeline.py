@@ -2,6 +2,7 @@
 ``vigs run`` on an EuRoC ASL folder."""
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -87,17 +88,22 @@ def write_asl(root, t_ns, images, T_WC):
     write_euroc_groundtruth(gt_dir / "data.csv", poses_to_trajectory(t_ns, T_WB))
 
 
-def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
+def _vigs_run(sequence, tmp_path, switches: str) -> tuple[dict, Path]:
+    """``vigs run`` on the sequence written as an ASL folder, with ``switches`` (YAML lines of the frontend's
+    parameters, e.g. which parts are off); returns the report and the output folder."""
     t_ns, images, T_WC = sequence
     write_asl(tmp_path / "seq", t_ns, images, T_WC)
     params = tmp_path / "p.yaml"
     params.write_text(f"frontend:\n  ros__parameters:\n    width: {W}\n    height: {H}\n    odometry:\n"
-                      "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n"
-                      "    imu:\n      enabled: false\n    loop:\n      enabled: false\n")
+                      "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n" + switches)
     out = tmp_path / "out"
     assert vigs_main(["run", str(tmp_path / "seq"), "--params", str(params), "--out", str(out),
                       "--no-progress"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    return json.loads((out / "report.json").read_text()), out
+
+
+def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
+    report, out = _vigs_run(sequence, tmp_path, "    imu:\n      enabled: false\n    loop:\n      enabled: false\n")
     assert report["frames"] == N and report["frames_posed"] == N
     assert report["keyframes"] >= 4
     assert report["accuracy"]["recall@0.1"] == pytest.approx(1.0)
@@ -111,23 +117,14 @@ def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
     assert "ate_rmse" in capsys.readouterr().out
 
 
-
 def test_vigs_run_with_loop_closure_in_its_worker_process(sequence, tmp_path):
     """Loop closure on (by default in a child process): the run completes with the worker closed at the end, its
     counters and its peak memory reported, and the odometry as accurate as without it (no loop to find)."""
-    t_ns, images, T_WC = sequence
-    write_asl(tmp_path / "seq", t_ns, images, T_WC)
-    params = tmp_path / "p.yaml"
-    params.write_text(f"frontend:\n  ros__parameters:\n    width: {W}\n    height: {H}\n    odometry:\n"
-                      "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n"
-                      "    imu:\n      enabled: false\n    mapping:\n      enabled: false\n")
-    out = tmp_path / "out"
-    assert vigs_main(["run", str(tmp_path / "seq"), "--params", str(params), "--out", str(out),
-                      "--no-progress"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    report, _ = _vigs_run(sequence, tmp_path, "    imu:\n      enabled: false\n    mapping:\n      enabled: false\n")
     assert report["frames_posed"] == N and report["accuracy"]["ate_rmse"] < 0.03
     assert report["loop"]["loops_found"] == 0 and report["loop"]["corrections_applied"] == 0
     assert report["peak_rss_mb_worker_process"] > 50   # a Python process with torch imported
+
 
 def test_vigs_run_rejects_bad_input_and_params(tmp_path):
     assert vigs_main(["run", str(tmp_path / "missing"), "--no-progress"]) == 2
