@@ -43,7 +43,7 @@ def _angle(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
     return theta2_safe.sqrt(), theta2, small
 
 
-def _coefficients(phi: torch.Tensor):
+def rodrigues_coefficients(phi: torch.Tensor):
     """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0).
 
     Below ``_SMALL_ANGLE`` the series stop at ``t^2``: the next terms (``t^4 / 120`` and smaller) are below
@@ -59,7 +59,7 @@ def _coefficients(phi: torch.Tensor):
 def exp_and_left_jacobian(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``Exp(phi)`` and ``J_l(phi) = I + b [phi]x + c [phi]x^2`` (..., 3, 3) together, sharing the
     coefficients and ``[phi]x^2`` (what :func:`~vigs_core.geometry.se3.se3_exp` needs)."""
-    a, b, c = (x[..., None, None] for x in _coefficients(phi))
+    a, b, c = (x[..., None, None] for x in rodrigues_coefficients(phi))
     k = hat(phi)
     k2 = k @ k
     eye = _eye_like(phi)
@@ -72,7 +72,7 @@ def _eye_like(phi: torch.Tensor) -> torch.Tensor:
 
 def so3_exp(phi: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``Exp(phi)`` for rotation vectors ``phi`` (..., 3) -> (..., 3, 3) (Rodrigues)."""
-    a, b, _ = _coefficients(phi)
+    a, b, _ = rodrigues_coefficients(phi)
     k = hat(phi)
     return _eye_like(phi) + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
@@ -98,7 +98,7 @@ def so3_log(rot: torch.Tensor) -> torch.Tensor:
 
 def so3_right_jacobian(phi: torch.Tensor) -> torch.Tensor:
     """Right Jacobian ``J_r(phi)`` (..., 3, 3): ``Exp(phi + d) ~= Exp(phi) Exp(J_r(phi) d)``."""
-    _, b, c = _coefficients(phi)
+    _, b, c = rodrigues_coefficients(phi)
     k = hat(phi)
     return _eye_like(phi) - b[..., None, None] * k + c[..., None, None] * (k @ k)
 

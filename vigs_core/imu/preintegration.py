@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import hat, so3_exp
-from vigs_core.geometry.so3 import _coefficients as _rodrigues_coefficients
+from vigs_core.geometry.so3 import rodrigues_coefficients
 from vigs_core.imu.samples import interval_measurements
 from vigs_core.types import ImuNoise, ImuSamples
 
@@ -147,7 +147,7 @@ class _PieceMatrices:
 
     @staticmethod
     def of(phi: torch.Tensor, scheme: str) -> "_PieceMatrices":
-        a, b, c = (x[..., None, None] for x in _rodrigues_coefficients(phi))
+        a, b, c = (x[..., None, None] for x in rodrigues_coefficients(phi))
         k = hat(phi)
         kk = k @ k
         eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
@@ -359,7 +359,8 @@ def preintegrate(
     Warns (:class:`~vigs_core.imu.samples.ImuDataWarning`) on gaps, out-of-order or duplicated
     samples around the interval. Biases are (3,) rad/s and m/s^2 (default zero).
     """
-    return preintegrate_between(imu, np.array([t0_ns, t1_ns]), noise, bias_gyro, bias_acc, scheme, device).item(0)
+    return preintegrate_intervals(imu, np.array([t0_ns]), np.array([t1_ns]), noise, bias_gyro, bias_acc, scheme,
+                                  device).item(0)
 
 
 def preintegrate_rotation(

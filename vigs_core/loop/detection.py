@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 import torch
 
-from vigs_core.frontend.correspondence import CorrespondenceEstimator, Correspondences, PixelGrid
+from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
 from vigs_core.geometry import sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
@@ -82,11 +82,6 @@ class LoopDecision:
     candidates: list[int] = field(default_factory=list)
     rejected: dict[int, str] = field(default_factory=dict)
     accepted: LoopEdge | None = None
-
-
-def _two_view(corr: Correspondences) -> TwoViewCorrespondences:
-    return TwoViewCorrespondences(torch.from_numpy(np.asarray(corr.target, dtype=np.float64)),
-                                  torch.from_numpy(np.asarray(corr.weight, dtype=np.float64)))
 
 
 def thumbnail(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -159,7 +154,7 @@ class LoopDetector:
         corr = self.estimator.estimate(src.image, dst.image, initial_target)
         weight = np.asarray(corr.weight, dtype=np.float64)
         flow = corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
-        return _two_view(corr), flow
+        return TwoViewCorrespondences.of(corr), flow
 
     def drift_check(self, old: KeyframeView, new: KeyframeView, relative: torch.Tensor,
                     history: Sequence[KeyframeView]) -> str:

@@ -77,14 +77,11 @@ class OdometryEdgeInformation:
 
     def __call__(self) -> dict[int, torch.Tensor]:
         Z = torch.from_numpy(np.linalg.inv(self.T_WC_a) @ self.T_WC_b)
-        back = None if self.backward is None else _correspondences(self.backward)
+        back = None if self.backward is None else TwoViewCorrespondences.of(self.backward)
         info = edge_information(Z, torch.from_numpy(self.depth_a), torch.from_numpy(self.depth_b),
-                                _correspondences(self.forward), back, self.grid, self.intr, self.verification)
+                                TwoViewCorrespondences.of(self.forward), back, self.grid, self.intr,
+                                self.verification)
         return {self.a: info}
-
-
-def _correspondences(corr: Any) -> TwoViewCorrespondences:
-    return TwoViewCorrespondences(torch.as_tensor(corr.target, dtype=F64), torch.as_tensor(corr.weight, dtype=F64))
 
 
 class LoopClosureDriver:
@@ -134,7 +131,7 @@ class LoopClosureDriver:
                     prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), a.depth.numpy().copy(),
                     b.depth.numpy().copy(), edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
                     self.odometry.intr, self.config.verification)
-                self.closure.add_keyframe(views[k], history, info)
+                self.closure.add_keyframe(b, history, info)
                 self._registered.append(k)
         if self.closure.pending:
             self._start_pgba()

@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 import torch
 
-from vigs_core.frontend.correspondence import PixelGrid
+from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.geometry import hat, sim3_exp, sim3_from_srt
 from vigs_core.loop.config import LoopVerificationConfig
 from vigs_core.solver import Intrinsics, huber_weight, pixel_rays
@@ -59,6 +59,12 @@ class TwoViewCorrespondences:
     target: torch.Tensor
     weight: torch.Tensor
     target_depth: torch.Tensor | None = None
+
+    @staticmethod
+    def of(corr: Correspondences) -> "TwoViewCorrespondences":
+        """The float64 tensors of a correspondence estimator's output (targets and confidences, no depth)."""
+        return TwoViewCorrespondences(torch.from_numpy(np.asarray(corr.target, dtype=np.float64)),
+                                      torch.from_numpy(np.asarray(corr.weight, dtype=np.float64)))
 
 
 @dataclass
