@@ -24,6 +24,17 @@ def edge_rotvecs():
     return (axes[:, None, :] * angles[None, :, None]).reshape(-1, 3)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_hat_is_the_cross_product_matrix(dtype):
+    v, w = torch.randn(4, 5, 3, dtype=dtype), torch.randn(4, 5, 3, dtype=dtype)
+    K = g.hat(v)
+    assert K.shape == (4, 5, 3, 3) and K.dtype == dtype
+    assert torch.equal(K, -K.transpose(-1, -2))
+    torch.testing.assert_close((K @ w[..., None])[..., 0], torch.linalg.cross(v, w))
+    assert torch.equal(g.vee(K), v)
+    assert g.hat(v[0, 0]).shape == (3, 3)
+
+
 def test_so3_exp_matches_scipy():
     phi = torch.cat((random_rotvecs(200), edge_rotvecs()))
     ref = Rotation.from_rotvec(phi.numpy()).as_matrix()

@@ -47,30 +47,34 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _shepperd_basis() -> tuple[torch.Tensor, torch.Tensor]:
+    """``(L (16, 9), c (16,))`` with ``L vec(m) + c`` the 4x4 candidate table of :func:`matrix_to_quat`: row ``k``
+    is ``4 q_k q`` (before dividing by ``4 q_k``), its diagonal ``4 q_k^2`` the pivots ``1 + tr m``,
+    ``1 + m00 - m11 - m22``, ... and the off-diagonal entries the sums and differences of opposite entries."""
+    e = torch.eye(9, dtype=torch.float64)
+    m = lambda i, j: e[3 * i + j]  # noqa: E731 -- coefficient row of m_ij
+    s21, s02, s10 = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)
+    a01, a02, a12 = m(0, 1) + m(1, 0), m(0, 2) + m(2, 0), m(1, 2) + m(2, 1)
+    p = [m(0, 0) + m(1, 1) + m(2, 2), m(0, 0) - m(1, 1) - m(2, 2), -m(0, 0) + m(1, 1) - m(2, 2),
+         -m(0, 0) - m(1, 1) + m(2, 2)]
+    L = torch.stack([p[0], s21, s02, s10, s21, p[1], a01, a02, s02, a01, p[2], a12, s10, a02, a12, p[3]])
+    return L, torch.eye(4, dtype=torch.float64).reshape(16)
+
+
+_SHEPPERD_L, _SHEPPERD_C = _shepperd_basis()
+
+
 def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
     """Unit quaternion ``(w, x, y, z)`` of rotation matrices (..., 3, 3), with ``w >= 0``.
 
     Shepperd's method: of the four algebraically equal formulas (one per largest of
     ``w^2, x^2, y^2, z^2``), take the one with the largest pivot, which is never below 1/2 and so
-    keeps full precision for every rotation.
+    keeps full precision for every rotation. The candidate table is linear in the matrix entries
+    (:func:`_shepperd_basis`), so it is one matrix product, not a few dozen small operations.
     """
-    m = rot
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    trace = m00 + m11 + m22
-    # 4 q_k^2 for each candidate pivot (w, x, y, z).
-    pivots = torch.stack((1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22), -1)
-    s21, s02, s10 = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
-    a01, a02, a12 = m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]
-    # Each row is 4 q_k * q for candidate k (before dividing by 4 q_k = 2 sqrt(pivot_k)).
-    candidates = torch.stack(
-        (
-            torch.stack((pivots[..., 0], s21, s02, s10), -1),
-            torch.stack((s21, pivots[..., 1], a01, a02), -1),
-            torch.stack((s02, a01, pivots[..., 2], a12), -1),
-            torch.stack((s10, a02, a12, pivots[..., 3]), -1),
-        ),
-        -2,
-    )
+    flat = rot.reshape(*rot.shape[:-2], 9, 1)
+    candidates = ((_SHEPPERD_L.to(rot) @ flat)[..., 0] + _SHEPPERD_C.to(rot)).reshape(*rot.shape[:-2], 4, 4)
+    pivots = torch.diagonal(candidates, dim1=-2, dim2=-1)
     best = pivots.argmax(-1)
     chosen = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     pivot = torch.gather(pivots, -1, best[..., None]).clamp_min(1e-12)

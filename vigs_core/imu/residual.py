@@ -95,6 +95,7 @@ def inertial_residual(
     log_scale: torch.Tensor,
     T_cb: torch.Tensor,
     gravity: float = GRAVITY,
+    jacobians: bool = True,
 ) -> InertialResidual:
     """Evaluate the inertial factors (see the module docstring for maths and conventions).
 
@@ -102,6 +103,8 @@ def inertial_residual(
         pre: batched preintegration (``B`` intervals, e.g. from ``preintegrate_between``).
         T_wc_i, T_wc_j: (B, 4, 4) camera poses; v_i, v_j: (B, 3); b_i, b_j: (B, 6) ``(b_g, b_a)``.
         R_wg: (3, 3); log_scale: () tensor; T_cb: (4, 4) body-to-camera; gravity: |g| (m/s^2).
+        jacobians: False returns the residuals alone (``jacobians`` empty): a cost evaluation (an LM trial
+            step) needs no Jacobians, which are most of the work.
     """
     f = dict(dtype=torch.float64, device=T_wc_i.device)
     T_cb, R_wg = T_cb.to(**f), R_wg.to(**f)
@@ -123,6 +126,8 @@ def inertial_residual(
     r_p = mv(Rit, x_p) - dp
     r_b = b_j - b_i
     residual = torch.cat((r_R, r_v, r_p, r_b), -1)
+    if not jacobians:
+        return InertialResidual(residual, {}, pre.cov)
 
     B = residual.shape[0]
     zero = torch.zeros(B, 3, 3, **f)

@@ -226,14 +226,15 @@ class InertialTerms:
             return b[:-1], b[1:]
         return b.expand(self.n - 1, 6), b.expand(self.n - 1, 6)
 
-    def evaluate(self, poses: torch.Tensor, state: InertialState) -> InertialResidual:
-        """Inertial residuals (n-1, 15) and Jacobians at world->camera ``poses`` (n, 4, 4) and ``state``."""
+    def evaluate(self, poses: torch.Tensor, state: InertialState, jacobians: bool = True) -> InertialResidual:
+        """Inertial residuals (n-1, 15) and (``jacobians``) their Jacobians at world->camera ``poses`` (n, 4, 4)
+        and ``state``."""
         self._check(poses, state)
         T_wc = se3_inverse(poses.to(torch.float64))
         b_i, b_j = self._bias_pairs(state)
         v = state.velocities
         return inertial_residual(self.pre, T_wc[:-1], v[:-1], b_i, T_wc[1:], v[1:], b_j, state.R_wg,
-                                 state.log_scale, self.T_cb, self.gravity)
+                                 state.log_scale, self.T_cb, self.gravity, jacobians=jacobians)
 
     def _residual_vector(self, res: InertialResidual) -> torch.Tensor:
         return res.residual[:, :self.info.shape[-1]]
@@ -268,7 +269,7 @@ class InertialTerms:
 
     def cost(self, poses: torch.Tensor, state: InertialState) -> torch.Tensor:
         """``1/2 w sum r^T Cov^-1 r`` plus the bias, anchor and marginalisation priors (scalar)."""
-        r = self._residual_vector(self.evaluate(poses, state))
+        r = self._residual_vector(self.evaluate(poses, state, jacobians=False))
         cost = 0.5 * (r[:, None, :] @ self.info @ r[:, :, None]).sum() + self._prior_cost(state)
         if self.marginal is not None:
             cost = cost + self.marginal.cost(self.marginal.delta(*self._marginal_states(poses, state))[0])
