@@ -5,6 +5,7 @@ Hamilton's (``i j = k``), so ``quat_to_matrix(q1 * q2) = quat_to_matrix(q1) @ qu
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -62,18 +63,28 @@ def _shepperd_basis() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 _SHEPPERD_L, _SHEPPERD_C = _shepperd_basis()
+_SHEPPERD_L_NP, _SHEPPERD_C_NP = _SHEPPERD_L.numpy(), _SHEPPERD_C.numpy()
 
 
-def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
-    """Unit quaternion ``(w, x, y, z)`` of rotation matrices (..., 3, 3), with ``w >= 0``.
+def matrix_to_quat(rot: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` of rotation matrices (..., 3, 3), with ``w >= 0`` (a torch tensor or a
+    NumPy array, as given).
 
     Shepperd's method: of the four algebraically equal formulas (one per largest of
     ``w^2, x^2, y^2, z^2``), take the one with the largest pivot, which is never below 1/2 and so
     keeps full precision for every rotation. The candidate table is linear in the matrix entries
     (:func:`_shepperd_basis`), so it is one matrix product, not a few dozen small operations.
     """
-    flat = rot.reshape(*rot.shape[:-2], 9, 1)
-    candidates = ((_SHEPPERD_L.to(rot) @ flat)[..., 0] + _SHEPPERD_C.to(rot)).reshape(*rot.shape[:-2], 4, 4)
+    flat = rot.reshape(*rot.shape[:-2], 9)
+    if isinstance(rot, np.ndarray):
+        candidates = (flat @ _SHEPPERD_L_NP.T + _SHEPPERD_C_NP).reshape(*rot.shape[:-2], 4, 4)
+        pivots = np.diagonal(candidates, axis1=-2, axis2=-1)
+        best = pivots.argmax(-1)[..., None]
+        chosen = np.take_along_axis(candidates, best[..., None], -2)[..., 0, :]
+        q = chosen / (2.0 * np.sqrt(np.maximum(np.take_along_axis(pivots, best, -1), 1e-12)))
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        return np.where(q[..., :1] < 0, -q, q)
+    candidates = (flat @ _SHEPPERD_L.T.to(rot) + _SHEPPERD_C.to(rot)).reshape(*rot.shape[:-2], 4, 4)
     pivots = torch.diagonal(candidates, dim1=-2, dim2=-1)
     best = pivots.argmax(-1)
     chosen = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)

@@ -13,24 +13,30 @@ near ``t = pi`` where the trace formula loses all precision.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 # Below this angle (rad) the trigonometric coefficients use their Taylor series.
 _SMALL_ANGLE = 1e-4
 
 
-# ``[v]x`` as a linear map of ``v``: row ``3 i + j`` holds ``-eps_ijk`` (Levi-Civita), so ``[v]x = E v``.
-_HAT_BASIS = torch.tensor([[0, 0, 0], [0, 0, -1], [0, 1, 0],
-                           [0, 0, 1], [0, 0, 0], [-1, 0, 0],
-                           [0, -1, 0], [1, 0, 0], [0, 0, 0]], dtype=torch.float64)
+# ``[v]x`` as a linear map of ``v``: column ``3 i + j`` holds ``-eps_ijk`` (Levi-Civita), so ``vec([v]x) = v E``.
+_HAT_BASIS = torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0],
+                           [0, 0, 1, 0, 0, 0, -1, 0, 0],
+                           [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64)
 
 
-def hat(v: torch.Tensor) -> torch.Tensor:
-    """Skew-symmetric matrix ``[v]x`` of ``v`` (..., 3) -> (..., 3, 3), with ``[v]x w = v x w``.
+_HAT_BASIS_NP = _HAT_BASIS.numpy()
 
-    One product with the constant (9, 3) basis (entries 0 and +-1, so every entry is exactly ``+-v_k``):
+
+def hat(v: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """Skew-symmetric matrix ``[v]x`` of ``v`` (..., 3) -> (..., 3, 3), with ``[v]x w = v x w`` (a torch tensor
+    or a NumPy array, as given).
+
+    One product with the constant (3, 9) basis (entries 0 and +-1, so every entry is exactly ``+-v_k``):
     a single operation instead of a dozen, which matters for the many small batches of the inertial terms."""
-    return (_HAT_BASIS.to(v) @ v[..., None]).reshape(*v.shape[:-1], 3, 3)
+    basis = _HAT_BASIS_NP.astype(v.dtype, copy=False) if isinstance(v, np.ndarray) else _HAT_BASIS.to(v)
+    return (v @ basis).reshape(*v.shape[:-1], 3, 3)
 
 
 def vee(m: torch.Tensor) -> torch.Tensor:
@@ -40,24 +46,33 @@ def vee(m: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _angle(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _array_module(x: torch.Tensor | np.ndarray):
+    """``numpy`` for a NumPy array, else ``torch``: the element-wise functions used below (``where``, ``sin``,
+    ``cos``, ``sqrt``, ``ones_like``) have the same names and meaning in both."""
+    return np if isinstance(x, np.ndarray) else torch
+
+
+def _angle(phi: torch.Tensor | np.ndarray):
     """Return (theta, theta^2, small-mask) with theta safe to divide by (set to 1 where small)."""
+    xp = _array_module(phi)
     theta2 = (phi * phi).sum(-1)
     small = theta2 < _SMALL_ANGLE**2
-    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
-    return theta2_safe.sqrt(), theta2, small
+    theta2_safe = xp.where(small, xp.ones_like(theta2), theta2)
+    return xp.sqrt(theta2_safe), theta2, small
 
 
-def rodrigues_coefficients(phi: torch.Tensor):
-    """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0).
+def rodrigues_coefficients(phi: torch.Tensor | np.ndarray):
+    """Coefficients a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3 (Taylor near 0), for a torch tensor
+    or a NumPy array (..., 3) (the IMU preintegration runs in NumPy).
 
     Below ``_SMALL_ANGLE`` the series stop at ``t^2``: the next terms (``t^4 / 120`` and smaller) are below
     the float64 resolution of the leading 1, 1/2, 1/6 there."""
+    xp = _array_module(phi)
     theta, theta2, small = _angle(phi)
-    sin, theta2_safe = torch.sin(theta), theta * theta
-    a = torch.where(small, 1.0 - theta2 / 6.0, sin / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2_safe)
-    c = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - sin) / (theta2_safe * theta))
+    sin, theta2_safe = xp.sin(theta), theta * theta
+    a = xp.where(small, 1.0 - theta2 / 6.0, sin / theta)
+    b = xp.where(small, 0.5 - theta2 / 24.0, (1.0 - xp.cos(theta)) / theta2_safe)
+    c = xp.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - sin) / (theta2_safe * theta))
     return a, b, c
 
 
@@ -71,18 +86,22 @@ def exp_and_left_jacobian(phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     return eye + a * k + b * k2, eye + b * k + c * k2
 
 
-def _eye_like(phi: torch.Tensor) -> torch.Tensor:
+def _eye_like(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    if isinstance(phi, np.ndarray):
+        return np.broadcast_to(np.eye(3, dtype=phi.dtype), (*phi.shape[:-1], 3, 3))
     return torch.eye(3, dtype=phi.dtype, device=phi.device).expand(*phi.shape[:-1], 3, 3)
 
 
-def so3_exp(phi: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix ``Exp(phi)`` for rotation vectors ``phi`` (..., 3) -> (..., 3, 3) (Rodrigues)."""
+def so3_exp(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """Rotation matrix ``Exp(phi)`` for rotation vectors ``phi`` (..., 3) -> (..., 3, 3) (Rodrigues); like
+    :func:`so3_log` and the right Jacobians, for a torch tensor or a NumPy array (the inertial factor runs in
+    NumPy)."""
     a, b, _ = rodrigues_coefficients(phi)
     k = hat(phi)
     return _eye_like(phi) + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 
-def so3_log(rot: torch.Tensor) -> torch.Tensor:
+def so3_log(rot: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Rotation vector ``Log(R)`` (..., 3, 3) -> (..., 3), angle in [0, pi].
 
     Computed from the unit quaternion ``q = (w, v)``: ``phi = 2 atan2(|v|, w) v / |v|``, with the
@@ -90,18 +109,18 @@ def so3_log(rot: torch.Tensor) -> torch.Tensor:
     """
     from vigs_core.geometry.quaternion import matrix_to_quat
 
-    q = matrix_to_quat(rot)
-    q = torch.where(q[..., :1] < 0, -q, q)
+    xp = _array_module(rot)
+    q = matrix_to_quat(rot)   # w >= 0
     w, v = q[..., 0], q[..., 1:]
     n2 = (v * v).sum(-1)
     small = n2 < 1e-12
-    n = torch.where(small, torch.ones_like(n2), n2).sqrt()
+    n = xp.sqrt(xp.where(small, xp.ones_like(n2), n2))
     # 2 atan2(n, w) / n ~ 2/w (1 - n^2/(3 w^2)) for small n.
-    scale = torch.where(small, 2.0 / w - (2.0 / 3.0) * n2 / w**3, 2.0 * torch.atan2(n, w) / n)
+    scale = xp.where(small, 2.0 / w - (2.0 / 3.0) * n2 / w**3, 2.0 * xp.atan2(n, w) / n)
     return scale[..., None] * v
 
 
-def so3_right_jacobian(phi: torch.Tensor) -> torch.Tensor:
+def so3_right_jacobian(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Right Jacobian ``J_r(phi)`` (..., 3, 3): ``Exp(phi + d) ~= Exp(phi) Exp(J_r(phi) d)``."""
     _, b, c = rodrigues_coefficients(phi)
     k = hat(phi)
@@ -113,14 +132,15 @@ def so3_left_jacobian(phi: torch.Tensor) -> torch.Tensor:
     return so3_right_jacobian(-phi)
 
 
-def so3_right_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
+def so3_right_jacobian_inv(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Inverse right Jacobian ``J_r^{-1}(phi)`` (..., 3, 3), closed form (Forster 2017, Eq. 9)."""
+    xp = _array_module(phi)
     theta, theta2, small = _angle(phi)
     # d = 1/t^2 - (1 + cos t) / (2 t sin t); Taylor: 1/12 + t^2/720 + t^4/30240.
-    d = torch.where(
+    d = xp.where(
         small,
         1.0 / 12.0 + theta2 / 720.0 + theta2**2 / 30240.0,
-        1.0 / theta**2 - (1.0 + torch.cos(theta)) / (2.0 * theta * torch.sin(theta)),
+        1.0 / theta**2 - (1.0 + xp.cos(theta)) / (2.0 * theta * xp.sin(theta)),
     )
     k = hat(phi)
     return _eye_like(phi) + 0.5 * k + d[..., None, None] * (k @ k)

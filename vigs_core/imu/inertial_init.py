@@ -208,7 +208,7 @@ def inertial_only_init(
     if n < 3 or len(stamps_ns) != n:
         raise ValueError(f"need N >= 3 keyframe poses with one stamp each, got {n} poses, {len(stamps_ns)} stamps")
     pre = preintegrate_between(imu, stamps_ns, noise, scheme=cfg.scheme, device=T_wc.device)
-    R_b, _, _ = body_states(T_wc, T_cb, torch.zeros((), **f))
+    R_b, _, _ = body_states(T_wc, T_cb, 1.0)
     bg = _gyro_bias(pre, R_b)
     vel, g_vec, s = _linear_velocity_gravity_scale(pre, T_wc, T_cb, bg)
     log_scale = torch.log(s) if s > 0 else torch.zeros((), **f)

@@ -1,5 +1,6 @@
 """On-manifold IMU preintegration (Forster et al., "On-Manifold Preintegration for Real-Time
-Visual-Inertial Odometry", T-RO 2017), vectorised over the samples, float64 torch.
+Visual-Inertial Odometry", T-RO 2017), vectorised over the samples; the arithmetic is float64 NumPy on
+the host (:func:`preintegrate_segments`), the results torch tensors.
 
 Preintegrated deltas between stamps ``t_i`` and ``t_j`` with the bias held at ``b = (b_g, b_a)``,
 for the piecewise-constant measurement sequence ``(dt_k, w_k, a_k)``, ``k = 0..K-1`` (see
@@ -94,7 +95,8 @@ class Preintegrated:
         """First-order bias update without re-integration (Forster Eq. 44).
 
         ``dR(b) = dR Exp(J_R_bg db_g)``, ``dv(b) = dv + J_v_bg db_g + J_v_ba db_a``, same for ``dp``,
-        with ``db = b - b_lin``. Shapes: biases (..., 3) -> ((..., 3, 3), (..., 3), (..., 3)).
+        with ``db = b - b_lin``. Shapes: biases (..., 3) -> ((..., 3, 3), (..., 3), (..., 3)); torch tensors, or
+        NumPy arrays on a :meth:`host` copy.
         """
         dbg = bias_gyro - self.bias_gyro
         dba = bias_acc - self.bias_acc
@@ -103,6 +105,14 @@ class Preintegrated:
         dv = self.delta_v + mv(self.J_v_bg, dbg) + mv(self.J_v_ba, dba)
         dp = self.delta_p + mv(self.J_p_bg, dbg) + mv(self.J_p_ba, dba)
         return dR, dv, dp
+
+    def host(self) -> "Preintegrated":
+        """A copy whose tensors are float64 NumPy arrays on the host (for NumPy arithmetic, e.g. the inertial
+        factor); the stamps stay as they are."""
+        return Preintegrated(**{
+            name: (value if name in ("t0_ns", "t1_ns") else value.detach().cpu().numpy())
+            for name, value in vars(self).items()
+        })
 
     def item(self, k: int) -> "Preintegrated":
         """Element ``k`` of a batched :class:`Preintegrated`."""
@@ -129,7 +139,7 @@ class IntegratedPath:
 
 @dataclass
 class _PieceMatrices:
-    """The SO(3) matrices of the pieces' rotation vectors ``phi`` (K, 3), each (K, 3, 3), from one ``[phi]x``
+    """The SO(3) matrices of the pieces' rotation vectors ``phi`` (K, 3), each (K, 3, 3) (NumPy), from one ``[phi]x``
     and one set of Rodrigues coefficients ``a = sin t / t``, ``b = (1 - cos t) / t^2``,
     ``c = (t - sin t) / t^3`` (``t = |phi|``; :mod:`vigs_core.geometry.so3`, Taylor near 0)::
 
@@ -140,58 +150,58 @@ class _PieceMatrices:
     (``G2`` is the double integral of ``Exp(s phi)``; ``J_l`` and ``G2`` only for the closed-form scheme.)
     """
 
-    exp: torch.Tensor
-    right_jacobian: torch.Tensor
-    left_jacobian: torch.Tensor | None
-    gamma2: torch.Tensor | None
+    exp: np.ndarray
+    right_jacobian: np.ndarray
+    left_jacobian: np.ndarray | None
+    gamma2: np.ndarray | None
 
     @staticmethod
-    def of(phi: torch.Tensor, scheme: str) -> "_PieceMatrices":
+    def of(phi: np.ndarray, scheme: str) -> "_PieceMatrices":
         a, b, c = (x[..., None, None] for x in rodrigues_coefficients(phi))
         k = hat(phi)
         kk = k @ k
-        eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+        eye = np.eye(3)
         exp, ck2 = eye + a * k + b * kk, c * kk
         right = eye - b * k + ck2
         if scheme != "closed_form":
             return _PieceMatrices(exp, right, None, None)
         t2 = (phi * phi).sum(-1)
         small = t2 < _SMALL_ANGLE**2
-        t = torch.where(small, torch.ones_like(t2), t2).sqrt()
-        d = torch.where(small, 1 / 24 - t2 / 720 + t2**2 / 40320, (0.5 * t**2 + torch.cos(t) - 1) / t**4)
+        t = np.sqrt(np.where(small, 1.0, t2))
+        d = np.where(small, 1 / 24 - t2 / 720 + t2**2 / 40320, (0.5 * t**2 + np.cos(t) - 1) / t**4)
         return _PieceMatrices(exp, right, eye + b * k + ck2, 0.5 * eye + c * k + d[..., None, None] * kk)
 
 
-def segmented_cumulative_product(mats: torch.Tensor, segment: torch.Tensor) -> torch.Tensor:
+def segmented_cumulative_product(mats: np.ndarray, segment: np.ndarray) -> np.ndarray:
     """Inclusive prefix products ``P_k = M_first ... M_k`` of (K, 3, 3) matrices, restarting at every
     segment (``segment`` (K,) non-decreasing ids); by doubling (Hillis-Steele), ``ceil(log2 K)`` steps."""
-    out = mats.clone()
+    out = mats.copy()
     step = 1
     while step < len(out):
         same = (segment[step:] == segment[:-step])[:, None, None]
-        out[step:] = torch.where(same, out[:-step] @ out[step:], out[step:])
+        out[step:] = np.where(same, out[:-step] @ out[step:], out[step:])
         step *= 2
     return out
 
 
-def _segmented_cumsum(x: torch.Tensor, segment: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
-    """Inclusive cumulative sum along dim 0 restarting at each segment (``first`` (S,) start indices)."""
-    c = torch.cumsum(x, 0)
+def _segmented_cumsum(x: np.ndarray, segment: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """Inclusive cumulative sum along axis 0 restarting at each segment (``first`` (S,) start indices)."""
+    c = np.cumsum(x, 0)
     offset = c[first] - x[first]
     return c - offset[segment]
 
 
 def _integrate(dt, w, a, segment, first, scheme: str):
-    """Deltas before/after every piece for bias-corrected measurements dt (K,), w (K,3), a (K,3)."""
+    """Deltas before/after every piece for bias-corrected measurements dt (K,), w (K,3), a (K,3) (NumPy)."""
     if scheme not in SCHEMES:
         raise ValueError(f"unknown preintegration scheme '{scheme}'; expected one of {SCHEMES}")
     phi = w * dt[:, None]
     m = _PieceMatrices.of(phi, scheme)
-    eye = torch.eye(3, dtype=dt.dtype, device=dt.device)
+    eye = np.eye(3)
     R_after = segmented_cumulative_product(m.exp, segment)
-    is_first = torch.zeros(len(dt), dtype=torch.bool, device=dt.device)
+    is_first = np.zeros(len(dt), dtype=bool)
     is_first[first] = True
-    R_before = torch.where(is_first[:, None, None], eye, torch.cat((eye[None], R_after[:-1])))
+    R_before = np.where(is_first[:, None, None], eye, np.concatenate((eye[None], R_after[:-1])))
     if scheme == "forster":
         g1, g2, g1a, g2a = None, None, a, 0.5 * a
     else:
@@ -205,30 +215,48 @@ def _integrate(dt, w, a, segment, first, scheme: str):
     return R_before, R_after, v_after, p_after, m.right_jacobian, g1, g2
 
 
+def _host64(x) -> np.ndarray:
+    """A float64 NumPy array from a tensor (any device), array or sequence."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def _device_of(*xs) -> torch.device:
+    """The device of the first tensor among ``xs`` (CPU when none is a tensor)."""
+    return next((x.device for x in xs if isinstance(x, torch.Tensor)), torch.device("cpu"))
+
+
 def integrate_path(
     dt: torch.Tensor, gyro: torch.Tensor, acc: torch.Tensor, bias_gyro: torch.Tensor, bias_acc: torch.Tensor,
     scheme: str = "closed_form",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Deltas ``(R (K+1,3,3), v (K+1,3), p (K+1,3))`` at every grid point (no covariance, no Jacobians)."""
-    segment = torch.zeros(len(dt), dtype=torch.long, device=dt.device)
-    first = torch.zeros(1, dtype=torch.long, device=dt.device)
-    _, R, v, p, *_ = _integrate(dt, gyro - bias_gyro, acc - bias_acc, segment, first, scheme)
-    eye = torch.eye(3, dtype=dt.dtype, device=dt.device)
-    zero = torch.zeros(1, 3, dtype=dt.dtype, device=dt.device)
-    return torch.cat((eye[None], R)), torch.cat((zero, v)), torch.cat((zero, p))
+    device = _device_of(dt, gyro, acc)
+    dt, gyro, acc = _host64(dt), _host64(gyro).reshape(-1, 3), _host64(acc).reshape(-1, 3)
+    segment, first = np.zeros(len(dt), dtype=np.int64), np.zeros(1, dtype=np.int64)
+    _, R, v, p, *_ = _integrate(dt, gyro - _host64(bias_gyro), acc - _host64(bias_acc), segment, first, scheme)
+    zero = np.zeros((1, 3))
+    out = (np.concatenate((np.eye(3)[None], R)), np.concatenate((zero, v)), np.concatenate((zero, p)))
+    return tuple(torch.from_numpy(x).to(device) for x in out)
 
 
 def preintegrate_segments(
-    dt: torch.Tensor,
-    gyro: torch.Tensor,
-    acc: torch.Tensor,
-    segment: torch.Tensor,
+    dt: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    acc: torch.Tensor | np.ndarray,
+    segment: torch.Tensor | np.ndarray,
     noise: ImuNoise,
-    bias_gyro: torch.Tensor,
-    bias_acc: torch.Tensor,
+    bias_gyro: torch.Tensor | np.ndarray,
+    bias_acc: torch.Tensor | np.ndarray,
     scheme: str = "closed_form",
+    device: torch.device | str | None = None,
 ) -> Preintegrated:
     """Preintegrate S measurement sequences at once (see the module docstring for the maths).
+
+    The arithmetic runs in float64 NumPy on the host: a preintegration is a few hundred operations on arrays
+    of tens of samples, where torch's per-operation overhead (several microseconds each, on any device) is most
+    of the cost (a single 0.15 s interval took about 2.5 ms through torch, once per tracked frame).
 
     Args:
         dt: (K,) piece lengths (s), all positive.
@@ -238,21 +266,24 @@ def preintegrate_segments(
         noise: continuous noise densities (``ImuNoise``).
         bias_gyro, bias_acc: (S, 3) linearisation biases of each sequence.
         scheme: ``"closed_form"`` or ``"forster"`` (GTSAM ``ManifoldPreintegration``-identical).
+        device: device of the returned tensors (default: that of the inputs, CPU for arrays).
 
     Returns:
         :class:`Preintegrated` with batch dimension S (stamps set to 0 and the total length in ns).
     """
+    device = _device_of(dt, gyro, acc, bias_gyro) if device is None else torch.device(device)
+    dt, gyro, acc = _host64(dt), _host64(gyro).reshape(-1, 3), _host64(acc).reshape(-1, 3)
+    segment = np.asarray(segment.cpu() if isinstance(segment, torch.Tensor) else segment, dtype=np.int64)
+    bg, ba = _host64(bias_gyro).reshape(-1, 3), _host64(bias_acc).reshape(-1, 3)
     _check_pieces(dt, gyro, acc)
-    f = dict(dtype=torch.float64, device=dt.device)
-    n_seg = bias_gyro.shape[0]
-    counts = torch.bincount(segment, minlength=n_seg)
+    n_seg = bg.shape[0]
+    counts = np.bincount(segment, minlength=n_seg)
     if len(counts) != n_seg or bool((counts == 0).any()) or bool((segment[1:] < segment[:-1]).any()):
         raise ValueError(f"segment ids must be non-decreasing and cover 0..{n_seg - 1}, each at least once")
-    last = torch.cumsum(counts, 0) - 1
+    last = np.cumsum(counts) - 1
     first = last - counts + 1
-    a = acc - bias_acc[segment]
-    R_before, R_after, v_after, p_after, J_r, g1, g2 = _integrate(
-        dt, gyro - bias_gyro[segment], a, segment, first, scheme)
+    a = acc - ba[segment]
+    R_before, R_after, v_after, p_after, J_r, g1, g2 = _integrate(dt, gyro - bg[segment], a, segment, first, scheme)
 
     t_after = _segmented_cumsum(dt, segment, first)
     total = t_after[last]
@@ -261,8 +292,8 @@ def preintegrate_segments(
     RJ = R_after @ J_r * dt[:, None, None]  # dR_{m+1} J_r(phi_m) dt_m
     s_v = v_N[segment] - v_after
     s_p = p_N[segment] - p_after - v_after * remain[:, None]
-    hat_sv, hat_sp, hat_a = hat(torch.stack((s_v, s_p, a)))
-    d_phi_w = R_N[segment].transpose(-1, -2) @ RJ
+    hat_sv, hat_sp, hat_a = hat(np.stack((s_v, s_p, a)))
+    d_phi_w = R_N[segment].swapaxes(-1, -2) @ RJ
     d_v_w = -hat_sv @ RJ
     d_p_w = -hat_sp @ RJ
     if scheme == "closed_form":
@@ -275,38 +306,41 @@ def preintegrate_segments(
         d_v_a = R_before * dt[:, None, None]
         d_p_a = R_before * (dt * remain + 0.5 * dt * dt)[:, None, None]
 
-    D_w = torch.cat((d_phi_w, d_v_w, d_p_w), dim=1)  # (K, 9, 3)
-    D_a = torch.cat((torch.zeros_like(d_v_a), d_v_a, d_p_a), dim=1)
+    D_w = np.concatenate((d_phi_w, d_v_w, d_p_w), axis=1)  # (K, 9, 3)
+    D_a = np.concatenate((np.zeros_like(d_v_a), d_v_a, d_p_a), axis=1)
     inv_dt = (1.0 / dt)[:, None, None]
-    piece_cov = noise.gyro_noise_density**2 * (D_w * inv_dt) @ D_w.transpose(-1, -2)
-    piece_cov = piece_cov + noise.acc_noise_density**2 * (D_a * inv_dt) @ D_a.transpose(-1, -2)
-    cov9 = torch.zeros(n_seg, 9, 9, **f).index_add_(0, segment, piece_cov)
-    cov = torch.zeros(n_seg, 15, 15, **f)
-    cov[:, :9, :9] = 0.5 * (cov9 + cov9.transpose(-1, -2))
-    eye = torch.eye(3, **f)
+    piece_cov = noise.gyro_noise_density**2 * (D_w * inv_dt) @ D_w.swapaxes(-1, -2)
+    piece_cov = piece_cov + noise.acc_noise_density**2 * (D_a * inv_dt) @ D_a.swapaxes(-1, -2)
+    cov9 = np.zeros((n_seg, 9, 9))
+    np.add.at(cov9, segment, piece_cov)
+    cov = np.zeros((n_seg, 15, 15))
+    cov[:, :9, :9] = 0.5 * (cov9 + cov9.swapaxes(-1, -2))
+    eye = np.eye(3)
     cov[:, 9:12, 9:12] = noise.gyro_random_walk**2 * total[:, None, None] * eye
     cov[:, 12:15, 12:15] = noise.acc_random_walk**2 * total[:, None, None] * eye
 
     # bias Jacobians: -sum over each segment's pieces, (S, 3, 3) each
-    per_piece = torch.stack((d_phi_w, d_v_w, d_v_a, d_p_w, d_p_a), 1)
-    J_R_bg, J_v_bg, J_v_ba, J_p_bg, J_p_ba = (
-        -torch.zeros(n_seg, 5, 3, 3, **f).index_add_(0, segment, per_piece)).unbind(1)
-    stamps = np.round(total.detach().cpu().numpy() * 1e9).astype(np.int64)
+    per_piece = np.stack((d_phi_w, d_v_w, d_v_a, d_p_w, d_p_a), 1)
+    sums = np.zeros((n_seg, 5, 3, 3))
+    np.add.at(sums, segment, per_piece)
+    J_R_bg, J_v_bg, J_v_ba, J_p_bg, J_p_ba = (-sums).swapaxes(0, 1)
+    stamps = np.round(total * 1e9).astype(np.int64)
+    t = lambda x: torch.from_numpy(np.require(x, requirements=("C", "W"))).to(device)  # noqa: E731
     return Preintegrated(
-        t0_ns=np.zeros(n_seg, np.int64), t1_ns=stamps, dt=total,
-        delta_R=R_N, delta_v=v_N, delta_p=p_N, cov=cov,
-        J_R_bg=J_R_bg, J_v_bg=J_v_bg, J_v_ba=J_v_ba,
-        J_p_bg=J_p_bg, J_p_ba=J_p_ba, bias_gyro=bias_gyro, bias_acc=bias_acc,
+        t0_ns=np.zeros(n_seg, np.int64), t1_ns=stamps, dt=t(total),
+        delta_R=t(R_N), delta_v=t(v_N), delta_p=t(p_N), cov=t(cov),
+        J_R_bg=t(J_R_bg), J_v_bg=t(J_v_bg), J_v_ba=t(J_v_ba),
+        J_p_bg=t(J_p_bg), J_p_ba=t(J_p_ba), bias_gyro=t(bg), bias_acc=t(ba),
     )
 
 
 def preintegrate_measurements(
-    dt: torch.Tensor,
-    gyro: torch.Tensor,
-    acc: torch.Tensor,
+    dt: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    acc: torch.Tensor | np.ndarray,
     noise: ImuNoise,
-    bias_gyro: torch.Tensor | None = None,
-    bias_acc: torch.Tensor | None = None,
+    bias_gyro: torch.Tensor | np.ndarray | None = None,
+    bias_acc: torch.Tensor | np.ndarray | None = None,
     scheme: str = "closed_form",
 ) -> Preintegrated:
     """Preintegrate one piecewise-constant measurement sequence (see the module docstring for the maths).
@@ -318,30 +352,19 @@ def preintegrate_measurements(
         bias_gyro, bias_acc: (3,) linearisation biases (default zero).
         scheme: ``"closed_form"`` or ``"forster"`` (GTSAM ``ManifoldPreintegration``-identical).
     """
-    dt = torch.as_tensor(dt, dtype=torch.float64)
-    dev = dt.device
-    gyro = torch.as_tensor(gyro, dtype=torch.float64, device=dev).reshape(-1, 3)
-    acc = torch.as_tensor(acc, dtype=torch.float64, device=dev).reshape(-1, 3)
-    zeros = torch.zeros(3, dtype=torch.float64, device=dev)
-    bg = zeros if bias_gyro is None else _as_f64(bias_gyro, dev)
-    ba = zeros if bias_acc is None else _as_f64(bias_acc, dev)
-    segment = torch.zeros(len(dt), dtype=torch.long, device=dev)
-    batch = preintegrate_segments(dt, gyro, acc, segment, noise, bg[None], ba[None], scheme)
+    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
+    ba = np.zeros(3) if bias_acc is None else _host64(bias_acc)
+    segment = np.zeros(len(dt), dtype=np.int64)
+    batch = preintegrate_segments(dt, gyro, acc, segment, noise, bg[None], ba[None], scheme,
+                                  _device_of(dt, gyro, acc))
     return batch.item(0)
 
 
-def _check_pieces(dt: torch.Tensor, gyro: torch.Tensor, acc: torch.Tensor) -> None:
+def _check_pieces(dt: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
     if not (len(dt) == len(gyro) == len(acc)) or len(dt) == 0:
         raise ValueError(f"need K >= 1 equal-length dt/gyro/acc, got {len(dt)}, {len(gyro)}, {len(acc)}")
     if bool((dt <= 0).any()):
         raise ValueError("preintegration needs positive piece lengths dt")
-
-
-def _as_f64(x, device) -> torch.Tensor:
-    """A float64 tensor on ``device`` from a tensor, array or sequence."""
-    if isinstance(x, torch.Tensor):
-        return x.to(dtype=torch.float64, device=device)
-    return torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
 
 
 def preintegrate(
@@ -375,12 +398,9 @@ def preintegrate_rotation(
     the ``delta_R`` of :func:`preintegrate` without its velocity, position, covariance and Jacobians.
     ``rate_hz`` is the nominal rate of the gap warnings (``noise.rate_hz`` in :func:`preintegrate`)."""
     _, dt, gyro, _ = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
-    f64 = dict(dtype=torch.float64, device=device)
-    bg = torch.zeros(3, **f64) if bias_gyro is None else _as_f64(bias_gyro, device)
-    dt = torch.as_tensor(dt, **f64)
-    phi = (torch.as_tensor(gyro, **f64) - bg) * dt[:, None]
-    segment = torch.zeros(len(dt), dtype=torch.long, device=device)
-    return segmented_cumulative_product(so3_exp(phi), segment)[-1]
+    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
+    exp = _PieceMatrices.of((gyro - bg) * dt[:, None], "forster").exp
+    return torch.from_numpy(segmented_cumulative_product(exp, np.zeros(len(dt), dtype=np.int64))[-1]).to(device)
 
 
 def preintegrate_path(
@@ -395,13 +415,10 @@ def preintegrate_path(
 ) -> IntegratedPath:
     """Deltas from ``t0_ns`` to every sample inside the interval and to ``t1_ns`` (for IMU-rate output)."""
     grid_ns, dt, gyro, acc = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
-    f64 = dict(dtype=torch.float64, device=device)
-    bg = torch.zeros(3, **f64) if bias_gyro is None else _as_f64(bias_gyro, device)
-    ba = torch.zeros(3, **f64) if bias_acc is None else _as_f64(bias_acc, device)
-    R, v, p = integrate_path(
-        torch.as_tensor(dt, **f64), torch.as_tensor(gyro, **f64), torch.as_tensor(acc, **f64), bg, ba, scheme
-    )
-    return IntegratedPath(grid_ns, R, v, p)
+    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
+    ba = np.zeros(3) if bias_acc is None else _host64(bias_acc)
+    R, v, p = integrate_path(dt, gyro, acc, bg, ba, scheme)
+    return IntegratedPath(grid_ns, R.to(device), v.to(device), p.to(device))
 
 
 def stack_preintegrated(items: list[Preintegrated]) -> Preintegrated:
@@ -456,17 +473,16 @@ def preintegrate_intervals(
         raise ValueError(f"need (B,) interval starts and ends, B >= 1, got {t0_ns.shape} and {t1_ns.shape}")
     n = len(t0_ns)
     pieces = [interval_measurements(imu, t0_ns[k], t1_ns[k], rate_hz=noise.rate_hz) for k in range(n)]
-    f64 = dict(dtype=torch.float64, device=device)
-    dt = torch.as_tensor(np.concatenate([p[1] for p in pieces]), **f64)
-    gyro = torch.as_tensor(np.concatenate([p[2] for p in pieces]), **f64)
-    acc = torch.as_tensor(np.concatenate([p[3] for p in pieces]), **f64)
-    segment = torch.as_tensor(np.repeat(np.arange(n), [len(p[1]) for p in pieces]), device=device)
+    dt = np.concatenate([p[1] for p in pieces])
+    gyro = np.concatenate([p[2] for p in pieces])
+    acc = np.concatenate([p[3] for p in pieces])
+    segment = np.repeat(np.arange(n), [len(p[1]) for p in pieces])
 
     def per_interval(b):
-        b = torch.zeros(3, **f64) if b is None else _as_f64(b, device)
-        return b.expand(n, 3) if b.ndim == 1 else b
+        b = np.zeros(3) if b is None else _host64(b)
+        return np.broadcast_to(b, (n, 3)) if b.ndim == 1 else b
 
     out = preintegrate_segments(dt, gyro, acc, segment, noise, per_interval(bias_gyro), per_interval(bias_acc),
-                                scheme)
+                                scheme, device)
     out.t0_ns, out.t1_ns = t0_ns.copy(), t1_ns.copy()
     return out

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from vigs_core.geometry import hat, so3_log, so3_right_jacobian, so3_right_jacobian_inv
@@ -72,15 +73,17 @@ def gravity_rotation(direction: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=d.dtype, device=d.device) + s * k + (1 - c) * (k @ k)
 
 
-def body_states(
-    T_wc: torch.Tensor, T_cb: torch.Tensor, log_scale: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Body rotation (B,3,3), metric body position (B,3) and scaled camera position (B,3) from camera poses."""
+def body_states(T_wc, T_cb, scale):
+    """Body rotation (B,3,3), metric body position (B,3) and scaled camera position (B,3) from camera poses
+    (torch tensors or NumPy arrays) and the scale ``s = exp(sigma)``."""
     R_wc, p_wc = T_wc[..., :3, :3], T_wc[..., :3, 3]
-    s = torch.exp(log_scale)
     R_wb = R_wc @ T_cb[:3, :3]
-    p_wb = s * p_wc + (R_wc @ T_cb[:3, 3:4])[..., 0]
-    return R_wb, p_wb, s * p_wc
+    p_wb = scale * p_wc + (R_wc @ T_cb[:3, 3:4])[..., 0]
+    return R_wb, p_wb, scale * p_wc
+
+
+def _host(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=np.float64)
 
 
 def inertial_residual(
@@ -99,6 +102,11 @@ def inertial_residual(
 ) -> InertialResidual:
     """Evaluate the inertial factors (see the module docstring for maths and conventions).
 
+    The arithmetic runs in float64 NumPy on the host (a window's factors are a few hundred operations on
+    arrays of a handful of rows, where torch's per-operation overhead was most of the cost: about 2 ms per
+    call through torch, several calls per BA iteration); the results are float64 tensors on the device of
+    ``T_wc_i``.
+
     Args:
         pre: batched preintegration (``B`` intervals, e.g. from ``preintegrate_between``).
         T_wc_i, T_wc_j: (B, 4, 4) camera poses; v_i, v_j: (B, 3); b_i, b_j: (B, 6) ``(b_g, b_a)``.
@@ -106,68 +114,59 @@ def inertial_residual(
         jacobians: False returns the residuals alone (``jacobians`` empty): a cost evaluation (an LM trial
             step) needs no Jacobians, which are most of the work.
     """
-    f = dict(dtype=torch.float64, device=T_wc_i.device)
-    T_cb, R_wg = T_cb.to(**f), R_wg.to(**f)
-    log_scale = torch.as_tensor(log_scale, **f)
-    R_i, p_i, sp_i = body_states(T_wc_i, T_cb, log_scale)
-    R_j, p_j, sp_j = body_states(T_wc_j, T_cb, log_scale)
-    g_frame = torch.tensor([0.0, 0.0, -gravity], **f)
+    device = T_wc_i.device if isinstance(T_wc_i, torch.Tensor) else torch.device("cpu")
+    out = lambda x: torch.from_numpy(x).to(device)  # noqa: E731
+    P = pre.host()
+    T_wc_i, v_i, b_i, T_wc_j, v_j, b_j, R_wg, T_cb = (
+        _host(x) for x in (T_wc_i, v_i, b_i, T_wc_j, v_j, b_j, R_wg, T_cb))
+    s = float(np.exp(_host(log_scale)))
+    R_i, p_i, sp_i = body_states(T_wc_i, T_cb, s)
+    R_j, p_j, sp_j = body_states(T_wc_j, T_cb, s)
+    g_frame = np.array([0.0, 0.0, -gravity])
     g = R_wg @ g_frame
-    dt = pre.dt[..., None]
-    dR, dv, dp = pre.corrected(b_i[..., :3], b_i[..., 3:])
-    Rit = R_i.transpose(-1, -2)
+    dt = P.dt[..., None]
+    dR, dv, dp = P.corrected(b_i[..., :3], b_i[..., 3:])
+    Rit = R_i.swapaxes(-1, -2)
     mv = lambda m, x: (m @ x[..., None])[..., 0]  # noqa: E731
 
-    E = dR.transpose(-1, -2) @ Rit @ R_j
+    E = dR.swapaxes(-1, -2) @ Rit @ R_j
     r_R = so3_log(E)
     x_v = v_j - v_i - g * dt
     x_p = p_j - p_i - v_i * dt - 0.5 * g * dt * dt
     r_v = mv(Rit, x_v) - dv
     r_p = mv(Rit, x_p) - dp
     r_b = b_j - b_i
-    residual = torch.cat((r_R, r_v, r_p, r_b), -1)
+    residual = np.concatenate((r_R, r_v, r_p, r_b), -1)
     if not jacobians:
-        return InertialResidual(residual, {}, pre.cov)
+        return InertialResidual(out(residual), {}, pre.cov)
 
     B = residual.shape[0]
-    zero = torch.zeros(B, 3, 3, **f)
     Jinv = so3_right_jacobian_inv(r_R)
-    JRj = Jinv @ R_j.transpose(-1, -2)
-
-    def rows(*blocks):  # stack 5 row blocks (B, 3, n) into (B, 15, n)
-        return torch.cat(blocks, dim=-2)
-
-    # pose_i: (rho, phi) columns
-    pose_i = rows(
-        torch.cat((zero, -JRj), -1),
-        torch.cat((zero, Rit @ hat(x_v)), -1),
-        torch.cat((-torch.exp(log_scale) * Rit, Rit @ (hat(x_p) + hat(p_i))), -1),
-        torch.zeros(B, 6, 6, **f),
-    )
-    pose_j = rows(
-        torch.cat((zero, JRj), -1),
-        torch.zeros(B, 3, 6, **f),
-        torch.cat((torch.exp(log_scale) * Rit, -Rit @ hat(p_j)), -1),
-        torch.zeros(B, 6, 6, **f),
-    )
-    vel_i = rows(zero, -Rit, -Rit * dt[..., None], torch.zeros(B, 6, 3, **f))
-    vel_j = rows(zero, Rit, zero, torch.zeros(B, 6, 3, **f))
-    dbg = b_i[..., :3] - pre.bias_gyro
-    d_rR_dbg = -Jinv @ E.transpose(-1, -2) @ so3_right_jacobian(mv(pre.J_R_bg, dbg)) @ pre.J_R_bg
-    eye6 = torch.eye(6, **f).expand(B, 6, 6)
-    bias_i = rows(
-        torch.cat((d_rR_dbg, zero), -1),
-        torch.cat((-pre.J_v_bg, -pre.J_v_ba), -1),
-        torch.cat((-pre.J_p_bg, -pre.J_p_ba), -1),
-        -eye6,
-    )
-    bias_j = rows(torch.zeros(B, 9, 6, **f), eye6)
+    JRj = Jinv @ R_j.swapaxes(-1, -2)
+    # each Jacobian is (B, 15, n), rows (r_R, r_v, r_p, r_b); the blocks that are not zero are filled in
+    pose_i, pose_j = np.zeros((B, 15, 6)), np.zeros((B, 15, 6))   # (rho, phi) columns
+    pose_i[:, 0:3, 3:] = -JRj
+    pose_i[:, 3:6, 3:] = Rit @ hat(x_v)
+    pose_i[:, 6:9, :3] = -s * Rit
+    pose_i[:, 6:9, 3:] = Rit @ (hat(x_p) + hat(p_i))
+    pose_j[:, 0:3, 3:] = JRj
+    pose_j[:, 6:9, :3] = s * Rit
+    pose_j[:, 6:9, 3:] = -Rit @ hat(p_j)
+    vel_i, vel_j = np.zeros((B, 15, 3)), np.zeros((B, 15, 3))
+    vel_i[:, 3:6], vel_i[:, 6:9], vel_j[:, 3:6] = -Rit, -Rit * dt[..., None], Rit
+    dbg = b_i[..., :3] - P.bias_gyro
+    bias_i, bias_j = np.zeros((B, 15, 6)), np.zeros((B, 15, 6))
+    bias_i[:, 0:3, :3] = -Jinv @ E.swapaxes(-1, -2) @ so3_right_jacobian(mv(P.J_R_bg, dbg)) @ P.J_R_bg
+    bias_i[:, 3:6, :3], bias_i[:, 3:6, 3:] = -P.J_v_bg, -P.J_v_ba
+    bias_i[:, 6:9, :3], bias_i[:, 6:9, 3:] = -P.J_p_bg, -P.J_p_ba
+    bias_i[:, 9:15] = -np.eye(6)
+    bias_j[:, 9:15] = np.eye(6)
     dg = (-R_wg @ hat(g_frame))[:, :2]  # d g / d (a, b), (3, 2)
-    gravity_j = rows(
-        torch.zeros(B, 3, 2, **f), -(Rit @ dg) * dt[..., None], -0.5 * (Rit @ dg) * (dt * dt)[..., None],
-        torch.zeros(B, 6, 2, **f),
-    )
-    scale_j = rows(torch.zeros(B, 6, 1, **f), mv(Rit, sp_j - sp_i)[..., None], torch.zeros(B, 6, 1, **f))
+    gravity_j = np.zeros((B, 15, 2))
+    gravity_j[:, 3:6] = -(Rit @ dg) * dt[..., None]
+    gravity_j[:, 6:9] = -0.5 * (Rit @ dg) * (dt * dt)[..., None]
+    scale_j = np.zeros((B, 15, 1))
+    scale_j[:, 6:9, 0] = mv(Rit, sp_j - sp_i)
     jac = dict(pose_i=pose_i, pose_j=pose_j, vel_i=vel_i, vel_j=vel_j, bias_i=bias_i, bias_j=bias_j,
                gravity=gravity_j, log_scale=scale_j)
-    return InertialResidual(residual, jac, pre.cov)
+    return InertialResidual(out(residual), {k: out(v) for k, v in jac.items()}, pre.cov)
