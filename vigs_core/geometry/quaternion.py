@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vigs_core.arrays import array_module, constant_like, take_along
+
 
 def quat_xyzw_to_wxyz(q: torch.Tensor) -> torch.Tensor:
     """Reorder TUM ``(x, y, z, w)`` to internal ``(w, x, y, z)``."""
@@ -48,22 +50,21 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _shepperd_basis() -> tuple[torch.Tensor, torch.Tensor]:
-    """``(L (16, 9), c (16,))`` with ``L vec(m) + c`` the 4x4 candidate table of :func:`matrix_to_quat`: row ``k``
+def _shepperd_basis() -> tuple[np.ndarray, np.ndarray]:
+    """``(L^T (9, 16), c (16,))`` with ``L vec(m) + c`` the 4x4 candidate table of :func:`matrix_to_quat`: row ``k``
     is ``4 q_k q`` (before dividing by ``4 q_k``), its diagonal ``4 q_k^2`` the pivots ``1 + tr m``,
     ``1 + m00 - m11 - m22``, ... and the off-diagonal entries the sums and differences of opposite entries."""
-    e = torch.eye(9, dtype=torch.float64)
+    e = np.eye(9)
     m = lambda i, j: e[3 * i + j]  # noqa: E731 -- coefficient row of m_ij
     s21, s02, s10 = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)
     a01, a02, a12 = m(0, 1) + m(1, 0), m(0, 2) + m(2, 0), m(1, 2) + m(2, 1)
     p = [m(0, 0) + m(1, 1) + m(2, 2), m(0, 0) - m(1, 1) - m(2, 2), -m(0, 0) + m(1, 1) - m(2, 2),
          -m(0, 0) - m(1, 1) + m(2, 2)]
-    L = torch.stack([p[0], s21, s02, s10, s21, p[1], a01, a02, s02, a01, p[2], a12, s10, a02, a12, p[3]])
-    return L, torch.eye(4, dtype=torch.float64).reshape(16)
+    L = np.stack([p[0], s21, s02, s10, s21, p[1], a01, a02, s02, a01, p[2], a12, s10, a02, a12, p[3]])
+    return np.ascontiguousarray(L.T), np.eye(4).reshape(16)
 
 
-_SHEPPERD_L, _SHEPPERD_C = _shepperd_basis()
-_SHEPPERD_L_NP, _SHEPPERD_C_NP = _SHEPPERD_L.numpy(), _SHEPPERD_C.numpy()
+_SHEPPERD_LT, _SHEPPERD_C = _shepperd_basis()
 
 
 def matrix_to_quat(rot: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
@@ -75,20 +76,14 @@ def matrix_to_quat(rot: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     keeps full precision for every rotation. The candidate table is linear in the matrix entries
     (:func:`_shepperd_basis`), so it is one matrix product, not a few dozen small operations.
     """
+    xp = array_module(rot)
     flat = rot.reshape(*rot.shape[:-2], 9)
-    if isinstance(rot, np.ndarray):
-        candidates = (flat @ _SHEPPERD_L_NP.T + _SHEPPERD_C_NP).reshape(*rot.shape[:-2], 4, 4)
-        pivots = np.diagonal(candidates, axis1=-2, axis2=-1)
-        best = pivots.argmax(-1)[..., None]
-        chosen = np.take_along_axis(candidates, best[..., None], -2)[..., 0, :]
-        q = chosen / (2.0 * np.sqrt(np.maximum(np.take_along_axis(pivots, best, -1), 1e-12)))
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-        return np.where(q[..., :1] < 0, -q, q)
-    candidates = (flat @ _SHEPPERD_L.T.to(rot) + _SHEPPERD_C.to(rot)).reshape(*rot.shape[:-2], 4, 4)
-    pivots = torch.diagonal(candidates, dim1=-2, dim2=-1)
-    best = pivots.argmax(-1)
-    chosen = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
-    pivot = torch.gather(pivots, -1, best[..., None]).clamp_min(1e-12)
-    q = chosen / (2.0 * pivot.sqrt())
-    q = q / q.norm(dim=-1, keepdim=True)
-    return torch.where(q[..., :1] < 0, -q, q)
+    candidates = (flat @ constant_like(_SHEPPERD_LT, rot) + constant_like(_SHEPPERD_C, rot)).reshape(
+        *rot.shape[:-2], 4, 4)
+    pivots = xp.diagonal(candidates, 0, -2, -1)
+    best = pivots.argmax(-1)[..., None]
+    chosen = take_along(candidates, best[..., None], -2)[..., 0, :]
+    pivot = take_along(pivots, best, -1)
+    q = chosen / (2.0 * xp.sqrt(xp.where(pivot > 1e-12, pivot, 1e-12)))
+    q = q / xp.linalg.norm(q, None, -1, True)
+    return xp.where(q[..., :1] < 0, -q, q)

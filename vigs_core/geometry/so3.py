@@ -16,17 +16,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vigs_core.arrays import array_module, constant_like
+
 # Below this angle (rad) the trigonometric coefficients use their Taylor series.
 _SMALL_ANGLE = 1e-4
 
 
 # ``[v]x`` as a linear map of ``v``: column ``3 i + j`` holds ``-eps_ijk`` (Levi-Civita), so ``vec([v]x) = v E``.
-_HAT_BASIS = torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0],
-                           [0, 0, 1, 0, 0, 0, -1, 0, 0],
-                           [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64)
-
-
-_HAT_BASIS_NP = _HAT_BASIS.numpy()
+_HAT_BASIS = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
+                       [0, 0, 1, 0, 0, 0, -1, 0, 0],
+                       [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=np.float64)
 
 
 def hat(v: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
@@ -35,8 +34,7 @@ def hat(v: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
 
     One product with the constant (3, 9) basis (entries 0 and +-1, so every entry is exactly ``+-v_k``):
     a single operation instead of a dozen, which matters for the many small batches of the inertial terms."""
-    basis = _HAT_BASIS_NP.astype(v.dtype, copy=False) if isinstance(v, np.ndarray) else _HAT_BASIS.to(v)
-    return (v @ basis).reshape(*v.shape[:-1], 3, 3)
+    return (v @ constant_like(_HAT_BASIS, v)).reshape(*v.shape[:-1], 3, 3)
 
 
 def vee(m: torch.Tensor) -> torch.Tensor:
@@ -46,15 +44,9 @@ def vee(m: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _array_module(x: torch.Tensor | np.ndarray):
-    """``numpy`` for a NumPy array, else ``torch``: the element-wise functions used below (``where``, ``sin``,
-    ``cos``, ``sqrt``, ``ones_like``) have the same names and meaning in both."""
-    return np if isinstance(x, np.ndarray) else torch
-
-
 def _angle(phi: torch.Tensor | np.ndarray):
     """Return (theta, theta^2, small-mask) with theta safe to divide by (set to 1 where small)."""
-    xp = _array_module(phi)
+    xp = array_module(phi)
     theta2 = (phi * phi).sum(-1)
     small = theta2 < _SMALL_ANGLE**2
     theta2_safe = xp.where(small, xp.ones_like(theta2), theta2)
@@ -67,7 +59,7 @@ def rodrigues_coefficients(phi: torch.Tensor | np.ndarray):
 
     Below ``_SMALL_ANGLE`` the series stop at ``t^2``: the next terms (``t^4 / 120`` and smaller) are below
     the float64 resolution of the leading 1, 1/2, 1/6 there."""
-    xp = _array_module(phi)
+    xp = array_module(phi)
     theta, theta2, small = _angle(phi)
     sin, theta2_safe = xp.sin(theta), theta * theta
     a = xp.where(small, 1.0 - theta2 / 6.0, sin / theta)
@@ -109,7 +101,7 @@ def so3_log(rot: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """
     from vigs_core.geometry.quaternion import matrix_to_quat
 
-    xp = _array_module(rot)
+    xp = array_module(rot)
     q = matrix_to_quat(rot)   # w >= 0
     w, v = q[..., 0], q[..., 1:]
     n2 = (v * v).sum(-1)
@@ -134,7 +126,7 @@ def so3_left_jacobian(phi: torch.Tensor) -> torch.Tensor:
 
 def so3_right_jacobian_inv(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Inverse right Jacobian ``J_r^{-1}(phi)`` (..., 3, 3), closed form (Forster 2017, Eq. 9)."""
-    xp = _array_module(phi)
+    xp = array_module(phi)
     theta, theta2, small = _angle(phi)
     # d = 1/t^2 - (1 + cos t) / (2 t sin t); Taylor: 1/12 + t^2/720 + t^4/30240.
     d = xp.where(

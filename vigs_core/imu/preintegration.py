@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from vigs_core.arrays import host
 from vigs_core.geometry import hat, so3_exp
 from vigs_core.geometry.so3 import rodrigues_coefficients
 from vigs_core.imu.samples import interval_measurements
@@ -110,7 +111,7 @@ class Preintegrated:
         """A copy whose tensors are float64 NumPy arrays on the host (for NumPy arithmetic, e.g. the inertial
         factor); the stamps stay as they are."""
         return Preintegrated(**{
-            name: (value if name in ("t0_ns", "t1_ns") else value.detach().cpu().numpy())
+            name: (value if name in ("t0_ns", "t1_ns") else host(value))
             for name, value in vars(self).items()
         })
 
@@ -215,11 +216,9 @@ def _integrate(dt, w, a, segment, first, scheme: str):
     return R_before, R_after, v_after, p_after, m.right_jacobian, g1, g2
 
 
-def _host64(x) -> np.ndarray:
-    """A float64 NumPy array from a tensor (any device), array or sequence."""
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
+def _bias64(b) -> np.ndarray:
+    """A bias (3,) or (S, 3) as a float64 array; zero when None."""
+    return np.zeros(3) if b is None else host(b, np.float64)
 
 
 def _device_of(*xs) -> torch.device:
@@ -233,9 +232,10 @@ def integrate_path(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Deltas ``(R (K+1,3,3), v (K+1,3), p (K+1,3))`` at every grid point (no covariance, no Jacobians)."""
     device = _device_of(dt, gyro, acc)
-    dt, gyro, acc = _host64(dt), _host64(gyro).reshape(-1, 3), _host64(acc).reshape(-1, 3)
+    dt, gyro, acc, bg, ba = (host(x, np.float64) for x in (dt, gyro, acc, bias_gyro, bias_acc))
+    gyro, acc = gyro.reshape(-1, 3), acc.reshape(-1, 3)
     segment, first = np.zeros(len(dt), dtype=np.int64), np.zeros(1, dtype=np.int64)
-    _, R, v, p, *_ = _integrate(dt, gyro - _host64(bias_gyro), acc - _host64(bias_acc), segment, first, scheme)
+    _, R, v, p, *_ = _integrate(dt, gyro - bg, acc - ba, segment, first, scheme)
     zero = np.zeros((1, 3))
     out = (np.concatenate((np.eye(3)[None], R)), np.concatenate((zero, v)), np.concatenate((zero, p)))
     return tuple(torch.from_numpy(x).to(device) for x in out)
@@ -272,9 +272,9 @@ def preintegrate_segments(
         :class:`Preintegrated` with batch dimension S (stamps set to 0 and the total length in ns).
     """
     device = _device_of(dt, gyro, acc, bias_gyro) if device is None else torch.device(device)
-    dt, gyro, acc = _host64(dt), _host64(gyro).reshape(-1, 3), _host64(acc).reshape(-1, 3)
-    segment = np.asarray(segment.cpu() if isinstance(segment, torch.Tensor) else segment, dtype=np.int64)
-    bg, ba = _host64(bias_gyro).reshape(-1, 3), _host64(bias_acc).reshape(-1, 3)
+    dt, gyro, acc, bg, ba = (host(x, np.float64) for x in (dt, gyro, acc, bias_gyro, bias_acc))
+    gyro, acc, bg, ba = (x.reshape(-1, 3) for x in (gyro, acc, bg, ba))
+    segment = host(segment, np.int64)
     _check_pieces(dt, gyro, acc)
     n_seg = bg.shape[0]
     counts = np.bincount(segment, minlength=n_seg)
@@ -352,8 +352,7 @@ def preintegrate_measurements(
         bias_gyro, bias_acc: (3,) linearisation biases (default zero).
         scheme: ``"closed_form"`` or ``"forster"`` (GTSAM ``ManifoldPreintegration``-identical).
     """
-    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
-    ba = np.zeros(3) if bias_acc is None else _host64(bias_acc)
+    bg, ba = _bias64(bias_gyro), _bias64(bias_acc)
     segment = np.zeros(len(dt), dtype=np.int64)
     batch = preintegrate_segments(dt, gyro, acc, segment, noise, bg[None], ba[None], scheme,
                                   _device_of(dt, gyro, acc))
@@ -398,7 +397,7 @@ def preintegrate_rotation(
     the ``delta_R`` of :func:`preintegrate` without its velocity, position, covariance and Jacobians.
     ``rate_hz`` is the nominal rate of the gap warnings (``noise.rate_hz`` in :func:`preintegrate`)."""
     _, dt, gyro, _ = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
-    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
+    bg = _bias64(bias_gyro)
     exp = _PieceMatrices.of((gyro - bg) * dt[:, None], "forster").exp
     return torch.from_numpy(segmented_cumulative_product(exp, np.zeros(len(dt), dtype=np.int64))[-1]).to(device)
 
@@ -415,8 +414,7 @@ def preintegrate_path(
 ) -> IntegratedPath:
     """Deltas from ``t0_ns`` to every sample inside the interval and to ``t1_ns`` (for IMU-rate output)."""
     grid_ns, dt, gyro, acc = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
-    bg = np.zeros(3) if bias_gyro is None else _host64(bias_gyro)
-    ba = np.zeros(3) if bias_acc is None else _host64(bias_acc)
+    bg, ba = _bias64(bias_gyro), _bias64(bias_acc)
     R, v, p = integrate_path(dt, gyro, acc, bg, ba, scheme)
     return IntegratedPath(grid_ns, R.to(device), v.to(device), p.to(device))
 
@@ -479,7 +477,7 @@ def preintegrate_intervals(
     segment = np.repeat(np.arange(n), [len(p[1]) for p in pieces])
 
     def per_interval(b):
-        b = np.zeros(3) if b is None else _host64(b)
+        b = _bias64(b)
         return np.broadcast_to(b, (n, 3)) if b.ndim == 1 else b
 
     out = preintegrate_segments(dt, gyro, acc, segment, noise, per_interval(bias_gyro), per_interval(bias_acc),

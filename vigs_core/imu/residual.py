@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from vigs_core.arrays import host
 from vigs_core.geometry import hat, so3_log, so3_right_jacobian, so3_right_jacobian_inv
 from vigs_core.imu.preintegration import Preintegrated
 
@@ -82,10 +83,6 @@ def body_states(T_wc, T_cb, scale):
     return R_wb, p_wb, scale * p_wc
 
 
-def _host(x) -> np.ndarray:
-    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=np.float64)
-
-
 def inertial_residual(
     pre: Preintegrated,
     T_wc_i: torch.Tensor,
@@ -118,8 +115,8 @@ def inertial_residual(
     out = lambda x: torch.from_numpy(x).to(device)  # noqa: E731
     P = pre.host()
     T_wc_i, v_i, b_i, T_wc_j, v_j, b_j, R_wg, T_cb = (
-        _host(x) for x in (T_wc_i, v_i, b_i, T_wc_j, v_j, b_j, R_wg, T_cb))
-    s = float(np.exp(_host(log_scale)))
+        host(x, np.float64) for x in (T_wc_i, v_i, b_i, T_wc_j, v_j, b_j, R_wg, T_cb))
+    s = float(np.exp(host(log_scale)))
     R_i, p_i, sp_i = body_states(T_wc_i, T_cb, s)
     R_j, p_j, sp_j = body_states(T_wc_j, T_cb, s)
     g_frame = np.array([0.0, 0.0, -gravity])

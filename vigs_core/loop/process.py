@@ -21,8 +21,10 @@ The parent never blocks on the pipe: its messages are pickled on the caller's th
 thread, so the child can always answer (a 7 MB batch of views after a loop correction and the child's
 answers filled the two pipe buffers at once and deadlocked both sides when the caller wrote them itself).
 Messages are pickled with the standard pickler (``send_bytes``): multiprocessing's own would hand every torch
-tensor over in shared memory, one segment per tensor. Tensors that may be views of a larger batch (keyframe
-views, PGBA corrections) travel as copies of their own elements, not their whole storage.
+tensor over in shared memory, one segment per tensor. Tensors travel as NumPy arrays
+(:func:`vigs_core.arrays.host`): NumPy pickles only the elements of a view of a larger batch (keyframe views,
+PGBA corrections), not its whole storage, and about 20 times faster than torch pickles a tensor (8 s of the
+main thread on hybrid MH_03 before).
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
@@ -40,9 +42,9 @@ import traceback
 from dataclasses import replace
 from typing import Any, Sequence
 
-import numpy as np
 import torch
 
+from vigs_core.arrays import host
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
@@ -58,12 +60,6 @@ def _send(conn: Any, msg: tuple) -> None:
 
 def _recv(conn: Any) -> tuple:
     return pickle.loads(conn.recv_bytes())
-
-
-def _array(t: torch.Tensor) -> np.ndarray:
-    """A tensor as a NumPy array for the pipe: NumPy pickles only the elements of a view, and about 20 times
-    faster than torch pickles a tensor's storage (8 s of the main thread on hybrid MH_03 before)."""
-    return t.detach().cpu().numpy()
 
 
 def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, intr: Intrinsics) -> None:
@@ -99,7 +95,7 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
             result = closure.poll()   # re-raises a job's error
             if result is not None:
                 covered = result.loops
-                _send(conn, ("result", replace(result, corrections={k: _array(C) for k, C in
+                _send(conn, ("result", replace(result, corrections={k: host(C) for k, C in
                                                                     result.corrections.items()})))
         except Exception:   # noqa: BLE001 - handed to the parent, which raises it from poll()
             _send(conn, ("error", traceback.format_exc()))
@@ -186,7 +182,7 @@ class LoopClosureProcess:
         """Send the views not yet in the child (or changed since) and queue ``new`` for detection there."""
         changed = [v for v in (*history, new) if self._sent.get(v.id) is not v]
         if changed:
-            self._post(("views", [(v.id, _array(v.T_WC), _array(v.depth), v.unit,
+            self._post(("views", [(v.id, host(v.T_WC), host(v.depth), v.unit,
                                           None if v.id in self._sent else v.image) for v in changed]))
             self._sent.update({v.id: v for v in changed})
         self._post(("keyframe", new.id, [v.id for v in history], odometry_information))
@@ -202,7 +198,7 @@ class LoopClosureProcess:
         """Queue PGBA in the child when :attr:`pending`; True when queued."""
         if not self.pending:
             return False
-        self._post(("pgba", {k: _array(T) for k, T in poses.items()}, metric))
+        self._post(("pgba", {k: host(T) for k, T in poses.items()}, metric))
         self._covered = self._found   # until the child says which loops its graph held
         self._in_flight = True
         return True

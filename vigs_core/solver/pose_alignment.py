@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from vigs_core.arrays import host
 from vigs_core.solver.projective import MIN_DEPTH_RATIO, Intrinsics, target_jacobian_entries
 
 
@@ -31,10 +32,6 @@ class PoseAlignment:
     pose: torch.Tensor
     rms: float
     inlier_ratio: float
-
-
-def _host(x: torch.Tensor) -> np.ndarray:
-    return x.detach().cpu().numpy()
 
 
 def _project(T_rel: np.ndarray, rays: np.ndarray, disp: np.ndarray, intr: Intrinsics, jacobian: bool):
@@ -69,15 +66,15 @@ def align_pose(T_src: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor, in
         the pose with ``T_init``'s dtype and device, the inlier RMS and the inlier ratio.
     """
     dtype = np.float32 if disp.dtype == torch.float32 else np.float64
-    d, uv_t, w0 = _host(disp).astype(dtype), _host(target).astype(dtype), _host(weight).astype(dtype)
-    c = _host(coords).astype(np.float64)
+    d, uv_t, w0 = host(disp, dtype), host(target, dtype), host(weight, dtype)
+    c = host(coords, np.float64)
     rays = np.stack(((c[:, 0] - intr.cx) / intr.fx, (c[:, 1] - intr.cy) / intr.fy, np.ones(len(c))), -1)
     rays = rays.astype(dtype)
-    src = _host(T_src).astype(np.float64)
+    src = host(T_src, np.float64)
     src_inv = np.eye(4)
     src_inv[:3, :3] = src[:3, :3].T
     src_inv[:3, 3] = -src[:3, :3].T @ src[:3, 3]
-    T = _host(T_init).astype(np.float64)
+    T = host(T_init, np.float64)
     for _ in range(iterations):
         uv, valid, J = _project(T @ src_inv, rays, d, intr, jacobian=True)
         r = uv_t - uv
