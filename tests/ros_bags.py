@@ -79,3 +79,20 @@ def write_sim_bag(path: Path, duration_s: float = 2.5, seed: int = 0) -> SimBag:
     msgs.sort(key=lambda m: m[2])
     write_ros2_bag(path, msgs)
     return SimBag(path, camera, seq.frame_t_ns.copy(), np.stack(poses), cal.T_BS, len(seq.imu))
+
+
+def write_prefix(src: Path, dst: Path, seconds: float) -> int:
+    """Copy the first ``seconds`` of every topic of ROS 2 bag ``src`` into ``dst`` (raw CDR, same types);
+    returns the number of images copied."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    images = 0
+    with AnyReader([src]) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        out = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+               for c in reader.connections}
+        stop = reader.start_time + int(seconds * 1e9)
+        for conn, t_ns, raw in reader.messages(stop=stop):
+            writer.write(out[conn.id], t_ns, raw)
+            images += conn.msgtype == "sensor_msgs/msg/CompressedImage"
+    return images

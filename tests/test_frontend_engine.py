@@ -8,7 +8,6 @@ from vigs_core.camera import CameraModel
 from vigs_core.frontend.odometry import Keyframe
 from vigs_core.geometry import se3_inverse, se3_exp
 from vigs_core.system import PipelineConfig
-from vigs_core.types import ImuNoise
 from vigs_ros.frontend_engine import FrameOutput, FrontendEngine
 
 D = torch.float64
@@ -17,7 +16,7 @@ D = torch.float64
 def engine_with_keyframe():
     camera = CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5)
     config = PipelineConfig(width=64, height=48)
-    engine = FrontendEngine(camera, config, np.eye(4), None, ImuNoise(), pose_update_tolerance=1e-3)
+    engine = FrontendEngine(camera, config, np.eye(4), None, pose_update_tolerance=1e-3)
     grid = engine.odometry.grid
     T_wc = se3_exp(torch.tensor([0.5, -0.2, 1.0, 0.1, 0.2, -0.3], dtype=D))
     disp = torch.linspace(0.2, 1.0, grid.size, dtype=D)

@@ -323,7 +323,7 @@ def test_frontend_camera_yaml_and_saved_outputs(ros_context, sim_bag, tmp_path):
         image = frame.image if frame.image.ndim == 2 else frame.image[..., 0]
         pub.publish(numpy_to_image(types, image, "mono8", frame.t_ns, "cam0"))
         n_frames += 1
-        assert spin_until(executor, lambda: frontend.frames_in == n_frames)
+        assert spin_until(executor, lambda: frontend.engine.stream.frames_in == n_frames)
     frontend.close()
     report = json.loads((tmp_path / "out" / "frontend_report.json").read_text())
     assert report["frames_in"] == report["frames_tracked"] == n_frames

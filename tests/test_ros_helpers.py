@@ -10,7 +10,8 @@ from vigs_core.geometry import se3_exp
 from vigs_ros.frames import Rep105Frames, body_from_camera, camera_from_body, invert, matrix_from_param
 from vigs_ros.params import dataclass_specs, default_params_files, load_params_file, nested
 from vigs_ros.replay import parse_remaps
-from vigs_ros.time_sync import FrameSynchronizer, ImuBuffer, ImuBufferConfig
+from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
+from vigs_ros.time_sync import FrameSynchronizer
 
 
 def pose(seed: int, scale: float = 1.0) -> np.ndarray:
@@ -71,18 +72,19 @@ def test_imu_buffer_rejects_disorder_reports_gaps_and_brackets():
 def test_frame_synchronizer_waits_for_imu_and_applies_offset():
     imu = ImuBuffer()
     sync = FrameSynchronizer(time_offset_ns=2_000_000, max_pending=3, max_wait_ns=200_000_000)
-    assert sync.push(100_000_000, "a") is None
-    assert sync.push(150_000_000, "b") is None
-    assert "not newer" in sync.push(150_000_000, "c")
+    assert sync.push(100_000_000, "a") == []
+    assert sync.push(150_000_000, "b") == []
+    assert sync.push(150_000_000, "c") == [(150_000_000, "c")]   # not newer: dropped
     assert sync.release(imu) == []
     imu.add(101_000_000, np.zeros(3), np.zeros(3))
     assert sync.release(imu) == []  # a needs IMU up to 102 ms (offset)
     imu.add(105_000_000, np.zeros(3), np.zeros(3))
     assert sync.release(imu) == [(102_000_000, "a", True)]
-    assert sync.push(400_000_000, "d") is None  # b waited 250 ms > max_wait: released incomplete
+    assert sync.push(400_000_000, "d") == []  # b waited 250 ms > max_wait: released incomplete
     assert sync.release(imu) == [(152_000_000, "b", False)]
-    remarks = [sync.push(500_000_000 + k, k) for k in range(4)]
-    assert remarks[:2] == [None, None] and "dropped the oldest (400000000 ns)" in remarks[2]
+    dropped = [sync.push(500_000_000 + k, k) for k in range(4)]
+    assert dropped[:2] == [[], []] and dropped[2] == [(400_000_000, "d")]
+    assert [t for t, _, _ in sync.release(None)] == [502_000_001 + k for k in range(3)]   # no IMU: all ready
 
 
 def test_load_params_file_layout(tmp_path):

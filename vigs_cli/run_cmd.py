@@ -16,6 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--stride", type=int, help="use every n-th frame")
     parser.add_argument("--image-topic", help="bag image topic (default: found by message type)")
+    parser.add_argument("--frames-from", metavar="FILE",
+                        help="process only the frames whose stamps (ns, first column) FILE lists and skip the rest, "
+                             "e.g. the frontend node's frames_processed.txt: replays a live run with its skips")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -33,8 +36,15 @@ def run(args: argparse.Namespace) -> int:
         cfg.frame_stride = args.stride
     if args.image_topic is not None:
         cfg.image_topic = args.image_topic
+    only_ns = None
+    if args.frames_from is not None:
+        try:
+            only_ns = read_stamps(args.frames_from)
+        except (OSError, ValueError) as err:
+            print(f"vigs run: bad --frames-from: {err}", file=sys.stderr)
+            return 2
     try:
-        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress)
+        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress, only_ns=only_ns)
     except (FileNotFoundError, ValueError) as err:
         print(f"vigs run: {err}", file=sys.stderr)
         return 2
@@ -44,3 +54,17 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps(summary))
     print(f"wrote {args.out}/trajectory.txt, trajectory_cam.txt, odometry.txt, keyframes.txt, report.json")
     return 0
+
+
+def read_stamps(path: str) -> set[int]:
+    """Integer stamps (ns) of the first column of a text file ('#' comments and blank lines skipped)."""
+    stamps = set()
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            line = line.split("#", 1)[0].strip()
+            if line:
+                try:
+                    stamps.add(int(line.split()[0]))
+                except ValueError:
+                    raise ValueError(f"{path}:{n}: expected an integer stamp in ns, got {line.split()[0]!r}") from None
+    return stamps

@@ -1,14 +1,9 @@
-"""The frontend node's computation, free of ROS: image preparation and the core odometry.
+"""The frontend node's computation, free of ROS: the core's streaming odometry plus what the node publishes.
 
-:class:`FrontendEngine` prepares each image like ``vigs run`` does (:class:`vigs_core.system.Preprocessor`:
-undistort + resize to the processing resolution in one remap; grey) and runs the core odometry of
-:class:`vigs_core.system.PipelineConfig`: :class:`vigs_core.vio.odometry.VisualInertialOdometry` (the dense
-monocular front end with tightly coupled IMU fusion, VIGS-SLAM 3.1-3.3) when ``config.imu.enabled`` and an
-IMU buffer is given, else the vision-only :class:`vigs_core.frontend.DenseOdometry`.
-
-Streaming IMU: the VIO core takes the IMU record of the whole run at construction (as ``vigs run`` has it);
-here the record grows while running, so before each frame the estimator's record is replaced by the buffer's
-current samples (:func:`feed_imu`); the node processes a frame only once the buffer reaches its stamp.
+:class:`FrontendEngine` wraps :class:`vigs_core.system.stream.OdometryStream`, the object ``vigs run`` drives the
+same way (``add_imu`` per IMU sample, then the image: undistort + resize to the processing resolution; the
+visual-inertial odometry of VIGS-SLAM 3.1-3.3 when ``config.imu.enabled`` and the node synchronises with the
+IMU, else vision-only), and turns each frame's result into what the node publishes.
 
 It reports per frame the camera pose, the keyframes created (with their inertial state), the keyframes whose
 pose moved (BA, world alignment at IMU initialisation), and whether the world was re-expressed (the
@@ -18,22 +13,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
 from msg_adapters.image import to_mono8
 from msg_adapters.vigs import KeyframeData
 from vigs_core.camera import CameraModel
-from vigs_core.frontend import DenseOdometry
 from vigs_core.loop import apply_to_odometry
-from vigs_core.solver import Intrinsics
-from vigs_core.system import PipelineConfig, Preprocessor
+from vigs_core.system import OdometryStream, PipelineConfig
 from vigs_core.system.mapping import depth_scale_change
 from vigs_core.types import ImuNoise
-from vigs_core.vio.odometry import VisualInertialOdometry
 from vigs_ros.frames import invert
-from vigs_ros.time_sync import ImuBuffer
 
 
 @dataclass
@@ -65,40 +57,24 @@ class FrameOutput:
     rotation_error: float = 0.0
 
 
-def feed_imu(odometry: VisualInertialOdometry, imu: ImuBuffer) -> None:
-    """Give the VIO estimator (and its initialiser) the IMU samples received so far."""
-    samples = imu.all()
-    odometry.vio.imu = samples
-    odometry.vio.initializer.imu = samples
-
-
 class FrontendEngine:
-    """Preprocessing + core odometry (module docstring).
+    """The streaming odometry and its published view (module docstring).
 
     Args:
         camera: the input camera (any distortion model).
         config: pipeline settings (processing size, threads, odometry, IMU fusion).
         T_bc: (4, 4) camera pose in the body (IMU) frame.
-        imu: the node's IMU buffer (None: vision-only).
-        noise: IMU noise densities.
+        noise: IMU noise densities; None: vision-only (the node does not synchronise with an IMU).
+        imu_history_s: IMU kept behind the newest sample (s).
         pose_update_tolerance: a keyframe pose change (m, or Frobenius norm of the rotation difference) above
             which an update is reported.
     """
 
-    def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray, imu: ImuBuffer | None,
-                 noise: ImuNoise, pose_update_tolerance: float = 1e-6) -> None:
-        torch.set_num_threads(config.torch_threads)
-        cv2.setNumThreads(config.torch_threads)
-        self.pre = Preprocessor(camera, config.width, config.height)
-        self.camera = self.pre.camera
-        cam = self.camera
-        intr = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy)
-        self.imu = imu if config.imu.enabled else None
-        if self.imu is not None:
-            self.odometry = VisualInertialOdometry(intr, cam.width, cam.height, self.imu.all(), noise, T_bc,
-                                                   config.odometry, config.imu)
-        else:
-            self.odometry = DenseOdometry(intr, cam.width, cam.height, config.odometry)
+    def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray, noise: ImuNoise | None,
+                 imu_history_s: float | None = 120.0, pose_update_tolerance: float = 1e-6) -> None:
+        self.stream = OdometryStream(camera, config, T_bc, noise, imu_history_s)
+        self.camera = self.stream.camera
+        self.odometry = self.stream.odometry
         self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
         self.pose_update_tolerance = pose_update_tolerance
         self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
@@ -106,18 +82,23 @@ class FrontendEngine:
 
     @property
     def inertial(self) -> bool:
-        return isinstance(self.odometry, VisualInertialOdometry)
+        return self.stream.inertial
 
-    def track(self, t_ns: int, image: np.ndarray, encoding: str) -> FrameOutput:
-        """Process one frame (input camera's size, mono8/rgb8/bgr8)."""
-        grey = self.pre(to_mono8(image, encoding))
-        if self.inertial:
-            feed_imu(self.odometry, self.imu)
-        T_cw = self.odometry.process(int(t_ns), grey)
+    def track(self, t_ns: int, image: np.ndarray, encoding: str,
+              on_pose: Callable[[np.ndarray], None] | None = None) -> FrameOutput | None:
+        """Process one frame (input camera's size, mono8/rgb8/bgr8), after the IMU samples up to its stamp were
+        given to ``stream.add_imu``. ``on_pose(T_wc)`` gets the tracked camera pose before the keyframe work
+        (:meth:`OdometryStream.add_prepared`). None for a frame the stride leaves out."""
+        if not self.stream.takes_next():
+            self.stream.add_prepared(t_ns, None)
+            return None
+        grey = self.stream.prepare(to_mono8(image, encoding))
         out = FrameOutput(int(t_ns), None)
+        notify = None if on_pose is None else (lambda T_cw: on_pose(self._rigid_inverse(T_cw.numpy(), out)))
+        T_cw = self.stream.add_prepared(int(t_ns), grey, notify)
         if T_cw is not None:
             out.T_wc = self._rigid_inverse(T_cw.numpy(), out)
-        metric = self.inertial and self.odometry.vio.metric
+        metric = self.stream.metric
         out.realigned, out.inertial_initialized = metric and not self._metric, metric
         self._metric = metric
         self.report_keyframes(out, metric)

@@ -22,6 +22,15 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
 * in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS) when ``sync_imu``: frames are processed in stamp order
   once the IMU reaches their stamp (+ ``time_offset_s``), at most ``max_imu_wait_s`` of frame time late
   (:class:`vigs_ros.time_sync.FrameSynchronizer`); frames released without IMU coverage are reported.
+
+Real time: the callbacks only queue what arrives (IMU samples, images, loop corrections); one tracking thread
+gives the IMU samples to the core (``OdometryStream.add_imu``) and tracks. When it falls behind the camera,
+it tracks the newest frame the IMU covers and skips the older ones (``frames_skipped``, a ``behind`` warning
+on the status naming the CPU as the cause, the stamps of the tracked frames in ``frames_processed.txt``: ``vigs
+run --frames-from`` replays the run with the same skips); the estimator bridges the gap with the IMU. Odometry
+and ``/tf`` are published as soon as a frame's pose is tracked, before the keyframe work (BA) that may follow.
+No queue grows without bound: images wait at most ``image_queue_depth`` deep for the IMU, IMU samples at most
+``imu_buffer_s`` for the tracking thread.
 * in ``preintegrated_topic`` (vigs_msgs/PreintegratedImu): validated and counted in diagnostics (the VIO core
   preintegrates from the raw IMU itself, so the IMU node's preintegrations serve other consumers).
 * in ``pose_update_topic`` (vigs_msgs/KeyframePoseUpdate): the loop detector's corrections (new poses and
@@ -43,15 +52,18 @@ pose ``T_WB = T_WC T_body_camera^-1`` of every posed frame relative to the final
 BA, IMU initialisation and loop corrections), ``odometry.txt`` (each frame's pose as first estimated,
 re-expressed in the final world at IMU initialisation, like ``vigs run``'s), ``keyframes.txt`` (final
 keyframe body poses) and ``frontend_report.json`` (frames received / tracked / posed / still pending,
-keyframes, the IMU initialisation's stamp, the node's counters).
+keyframes, the IMU initialisation's stamp, the node's counters, latency from image arrival to odometry
+publish p50 / p95 / max), ``frames_processed.txt`` (stamps, ns, of the tracked frames).
 """
 from __future__ import annotations
 
 import json
 import pathlib
 import sys
+import threading
 import time
 import traceback
+from collections import deque
 
 import numpy as np
 from nav_msgs.msg import Odometry, Path
@@ -85,7 +97,7 @@ from vigs_ros.frontend_engine import FrontendEngine
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
 from vigs_ros.runtime import VigsNode, run_nodes
-from vigs_ros.time_sync import FrameSynchronizer, ImuBuffer, ImuBufferConfig
+from vigs_ros.time_sync import FrameSynchronizer
 
 NODE_NAME = "frontend"
 IDENTITY_16 = [float(v) for v in np.eye(4).reshape(-1)]
@@ -125,7 +137,8 @@ PARAMS = [
     ParamSpec("path_every_n", 10, "publish the path every n frames (and at every keyframe)"),
     ParamSpec("path_max_poses", 20000, "poses kept in the path"),
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
-    ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window)"),
+    ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window); "
+                                     "also bounds the samples queued for the tracking thread"),
     ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))"),
     ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))"),
     ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))"),
@@ -162,7 +175,6 @@ class FrontendNode(VigsNode):
                               self.p["acc_random_walk"], self.p["rate_hz"])
         self.camera: CameraModel | None = None
         self.engine: FrontendEngine | None = None
-        self.frames_in = 0
         self.realigned_at_ns: int | None = None
         self.frames = Rep105Frames()
         self.path_poses = []
@@ -170,9 +182,20 @@ class FrontendNode(VigsNode):
         self.first_image_wall: float | None = None
         self.held_for_camera: list[tuple[np.ndarray, str, object]] = []  # (image, encoding, header)
         self.frames_since_path = 0
-        self.imu = ImuBuffer(ImuBufferConfig(self.p["rate_hz"], max_age_s=float(self.p["imu_buffer_s"])))
         self.sync = FrameSynchronizer(self.offset_ns, max_pending=int(self.p["image_queue_depth"]),
                                       max_wait_ns=int(float(self.p["max_imu_wait_s"]) * 1e9))
+        # queues from the callbacks (executor thread) to the tracking thread (module docstring)
+        self.imu_inbox: deque[tuple[int, np.ndarray, np.ndarray]] = deque(
+            maxlen=max(1, int(float(self.p["imu_buffer_s"]) * float(self.p["rate_hz"]))))
+        self.imu_received_ns: int | None = None   # newest IMU stamp received (not yet given to the core)
+        self.corrections: deque[PoseUpdateData] = deque()
+        self.sync_lock = threading.Lock()
+        self.wake = threading.Event()
+        self.stop = threading.Event()
+        self.processed_ns: list[int] = []
+        self.latency_s: deque[float] = deque(maxlen=10000)   # image arrival -> odometry publish (wall s)
+        self.queue_max = {"imu_samples": 0, "frames": 0}     # deepest queues seen by the tracking thread
+        self.worker = threading.Thread(target=self.work, name="frontend-tracking", daemon=True)
 
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
         self.pub_path = self.create_publisher(Path, self.p["path_topic"], latched_qos(1))
@@ -202,6 +225,7 @@ class FrontendNode(VigsNode):
         if self.p["publish_tf"]:
             self.pub_tf_static.publish(tf_message(self.types, [StampedTransform(
                 0, self.p["base_frame"], self.p["camera_frame"], self.T_bc)]))
+        self.worker.start()
 
     # ------------------------------------------------------------------ inputs
     def on_camera_info(self, msg: CameraInfo) -> None:
@@ -216,26 +240,28 @@ class FrontendNode(VigsNode):
     def set_camera(self, camera: CameraModel) -> None:
         """Create the engine for ``camera`` (from the first CameraInfo, or from ``camera_yaml``)."""
         self.camera = camera
-        self.engine = FrontendEngine(camera, self.config, self.T_bc, self.imu if self.p["sync_imu"] else None,
-                                     self.noise)
+        self.engine = FrontendEngine(camera, self.config, self.T_bc, self.noise if self.p["sync_imu"] else None,
+                                     float(self.p["imu_buffer_s"]))
         self.status.info["core"] = type(self.engine.odometry).__name__
         self.status.clear_error("camera_info")
         self.status.info["camera"] = (f"{camera.width}x{camera.height} {camera.distortion} -> processing "
                                       f"{self.engine.camera.width}x{self.engine.camera.height}")
         self.get_logger().info(f"camera: {self.status.info['camera']}")
         held, self.held_for_camera = self.held_for_camera, []
-        for image, encoding, header in held:  # images that arrived before the camera info
-            self.accept_frame(image, encoding, header)
+        for image, encoding, header, arrived in held:  # images that arrived before the camera info
+            self.accept_frame(image, encoding, header, arrived)
 
     def on_imu(self, msg: Imu) -> None:
         try:
             t_ns, gyro, acc = imu_to_sample(msg)
         except ValueError:
             return  # reported by the IMU node
-        self.imu.add(t_ns, gyro, acc)
-        self.process_ready()
+        self.imu_inbox.append((t_ns, gyro, acc))
+        self.imu_received_ns = t_ns if self.imu_received_ns is None else max(self.imu_received_ns, t_ns)
+        self.wake.set()
 
     def on_image(self, msg) -> None:
+        arrived = time.monotonic()
         self.status.count("images_in")
         try:
             if isinstance(msg, CompressedImage):
@@ -255,12 +281,12 @@ class FrontendNode(VigsNode):
             now = time.monotonic()
             self.first_image_wall = self.first_image_wall or now
             self.status.count("frames_without_camera_info")
-            self.held_for_camera.append((image, encoding, msg.header))
+            self.held_for_camera.append((image, encoding, msg.header, arrived))
             if now - self.first_image_wall >= self.p["camera_info_timeout_s"]:
                 self.status.set_error("camera_info", f"images arrive but no camera info on "
                                                      f"{self.p['camera_info_topic']}")
                 held, self.held_for_camera = self.held_for_camera, []  # stop holding: a replay waits for acks
-                for *_, header in held:
+                for _, _, header, _ in held:
                     self.status.count("frames_dropped_without_camera_info")
                     self.frame_done(header)
             elif len(self.held_for_camera) > int(self.p["image_queue_depth"]):
@@ -268,38 +294,79 @@ class FrontendNode(VigsNode):
                 self.status.count("frames_dropped_without_camera_info")
                 self.frame_done(header)
             return
-        self.accept_frame(image, encoding, msg.header)
+        self.accept_frame(image, encoding, msg.header, arrived)
 
-    def accept_frame(self, image: np.ndarray, encoding: str, header) -> None:
-        """A decoded intensity image, once the camera is known: checked, synchronised with the IMU, tracked."""
+    def accept_frame(self, image: np.ndarray, encoding: str, header, arrived: float) -> None:
+        """A decoded intensity image, once the camera is known: checked and queued for the tracking thread."""
         if image.shape[:2] != (self.camera.height, self.camera.width):
             self.status.warn("image_size", f"image is {image.shape[1]}x{image.shape[0]} but camera info says "
                                            f"{self.camera.width}x{self.camera.height}: dropped")
             self.frame_done(header)
             return
-        if not self.p["sync_imu"]:
-            self.track(stamp_to_ns(header.stamp) + self.offset_ns, image, encoding, header)
-            return
-        remark = self.sync.push(stamp_to_ns(header.stamp), (image, encoding, header))
-        if remark is not None:
-            self.status.warn("frame_sync", remark)
-        self.process_ready()
+        t_cam = stamp_to_ns(header.stamp)
+        with self.sync_lock:
+            dropped = self.sync.push(t_cam, (image, encoding, header, arrived))
+        for t_old, (*_, old_header, _) in dropped:
+            self.frame_done(old_header)
+            imu = self.imu_received_ns
+            if t_old == t_cam:
+                self.status.warn("frame_order", f"image at {t_cam} ns is not newer than the previous one: dropped")
+            elif imu is not None and imu >= t_old + self.offset_ns:   # the IMU was there: tracking is behind
+                self.status.count("frames_skipped")
+                self.status.warn("behind", f"tracking is behind the camera (CPU): {self.sync.max_pending} frames "
+                                           f"queued, dropped the oldest ({t_old} ns)")
+            else:
+                self.status.warn("frame_sync", f"{self.sync.max_pending} images wait for IMU data (IMU at {imu} "
+                                               f"ns): dropped the oldest ({t_old} ns)")
+        self.wake.set()
 
-    def process_ready(self) -> None:
-        """Track the frames the IMU has caught up with (see FrameSynchronizer)."""
-        for t_ns, (image, encoding, header), complete in self.sync.release(self.imu):
-            if not complete:
-                self.status.warn("imu_coverage", f"frame at {t_ns} ns processed without IMU data up to its stamp "
-                                                 f"(IMU at {self.imu.latest_ns} ns)")
-            self.track(t_ns, image, encoding, header)
+    # ------------------------------------------------------------------ tracking thread
+    def work(self) -> None:
+        """The tracking thread's loop: wait for input, then :meth:`step` (module docstring)."""
+        while not self.stop.is_set():
+            self.wake.wait(0.1)
+            self.wake.clear()
+            try:
+                self.step()
+            except Exception:   # a bug outside the core's per-frame guard: report it, keep the node alive
+                self.status.set_error("tracking_thread", "the tracking thread failed: " + traceback.format_exc(limit=1))
+                self.get_logger().error("tracking thread failure:\n" + traceback.format_exc())
 
-    def track(self, t_ns: int, image, encoding: str, header) -> None:
-        self.frames_in += 1
-        if (self.frames_in - 1) % int(self.config.frame_stride):
-            self.frame_done(header)
+    def step(self) -> None:
+        """Apply queued corrections, give the queued IMU samples to the core, then track the newest frame the IMU
+        covers and skip the older ready ones (module docstring)."""
+        engine = self.engine
+        if engine is None:
             return
+        self.queue_max["imu_samples"] = max(self.queue_max["imu_samples"], len(self.imu_inbox))
+        self.queue_max["frames"] = max(self.queue_max["frames"], len(self.sync))
+        while self.corrections:
+            self.apply_update(self.corrections.popleft())
+        while self.imu_inbox:
+            remark = engine.stream.add_imu(*self.imu_inbox.popleft())
+            if remark is not None:
+                self.status.warn("imu_stream", remark)
+        with self.sync_lock:
+            ready = self.sync.release(engine.stream.imu)
+        if not ready:
+            return
+        *behind, (t_ns, (image, encoding, header, arrived), complete) = ready
+        for t_old, (*_, old_header, _), _ in behind:
+            engine.stream.skip(t_old)
+            self.status.count("frames_skipped")
+            self.frame_done(old_header)
+        if behind:
+            self.status.warn("behind", f"tracking is behind the camera (CPU): skipped {len(behind)} frame(s), "
+                                       f"tracking the newest ({t_ns} ns)")
+        if not complete:
+            self.status.warn("imu_coverage", f"frame at {t_ns} ns processed without IMU data up to its stamp "
+                                             f"(IMU at {engine.stream.imu and engine.stream.imu.latest_ns} ns)")
+        self.track(t_ns, image, encoding, header, arrived)
+        self.wake.set()   # more may have become ready meanwhile
+
+    def track(self, t_ns: int, image, encoding: str, header, arrived: float) -> None:
         try:
-            out = self.engine.track(t_ns, image, encoding)
+            out = self.engine.track(t_ns, image, encoding, lambda T_wc: self.publish_pose(t_ns, T_wc, arrived))
         except Exception as exc:  # a core failure on one frame must not take the graph down: report it
             self.status.warn("core_error", f"the odometry core failed on the frame at {t_ns} ns: "
                                            f"{type(exc).__name__}: {exc}")
@@ -307,6 +374,10 @@ class FrontendNode(VigsNode):
                 self.get_logger().error("first core failure:\n" + traceback.format_exc())
             self.frame_done(header)
             return
+        if out is None:   # left out by frame_stride
+            self.frame_done(header)
+            return
+        self.processed_ns.append(t_ns)
         self.status.count("frames_tracked")
         if out.rotation_error > 1e-6:
             self.status.warn("core_pose", f"the odometry core returned rotations off SO(3) by {out.rotation_error:.2e}"
@@ -325,8 +396,11 @@ class FrontendNode(VigsNode):
         update = self.status.decode(msg_to_pose_update, msg, "pose_update", "keyframe pose update")
         if update is None:
             return
-        if self.engine is None:
-            return
+        self.corrections.append(update)   # applied by the tracking thread between frames
+        self.wake.set()
+
+    def apply_update(self, update: PoseUpdateData) -> None:
+        """Apply a loop detector's correction to the odometry (tracking thread)."""
         ids = [int(i) for i in update.ids]
         n = self.engine.apply_corrections(dict(zip(ids, update.poses)), dict(zip(ids, update.scales)))
         if n:
@@ -339,7 +413,20 @@ class FrontendNode(VigsNode):
     def frame_done(self, header) -> None:
         self.pub_done.publish(Header(stamp=header.stamp, frame_id=header.frame_id))
 
+    def publish_pose(self, t_ns: int, T_wc: np.ndarray, arrived: float) -> None:
+        """Odometry and ``/tf`` of a frame, as soon as its pose is tracked (before the keyframe work)."""
+        p = self.p
+        T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc))
+        self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
+        self.latency_s.append(time.monotonic() - arrived)
+        self.status.count("odometry_out")
+        if p["publish_tf"]:
+            self.pub_tf.publish(tf_message(self.types, [
+                StampedTransform(t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
+                StampedTransform(t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
+
     def publish_frame(self, out) -> None:
+        """What follows a frame's keyframe work: the path, keyframes and their updates, the state."""
         p = self.p
         if out.T_wc is None:
             return
@@ -348,13 +435,6 @@ class FrontendNode(VigsNode):
             self.frames.mark_correction()
             self.realigned_at_ns = out.t_ns
             self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
-        T_map_odom, T_odom_base = self.frames.update(T_wb)
-        self.pub_odom.publish(pose_to_odometry(self.types, out.t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
-        self.status.count("odometry_out")
-        if p["publish_tf"]:
-            self.pub_tf.publish(tf_message(self.types, [
-                StampedTransform(out.t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
-                StampedTransform(out.t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
         if out.realigned or self.path_stale:  # the map frame was re-expressed: so is every pose of the path
             self.rebuild_path()
         else:
@@ -398,19 +478,38 @@ class FrontendNode(VigsNode):
                            for t, T in zip(t_ns[-keep:], T_cw.numpy()[-keep:])]
         self.path_stale = False
 
+    def stop_tracking(self) -> None:
+        """Stop the tracking thread; it finishes the frame it is tracking."""
+        self.stop.set()
+        self.wake.set()
+        if self.worker.is_alive() and self.worker is not threading.current_thread():
+            self.worker.join(30.0)
+
+    def destroy_node(self) -> None:
+        self.stop_tracking()   # no publishing from the tracking thread after destruction
+        super().destroy_node()
+
     def close(self) -> None:
-        """Write the outputs of the run to ``output_dir`` (module docstring). Reports go to stderr: the
-        context (and so /rosout) may already be shut down."""
+        """Stop the tracking thread, then write the outputs of the run to ``output_dir`` (module docstring).
+        Reports go to stderr: the context (and so /rosout) may already be shut down."""
+        self.stop_tracking()
         if not self.p["output_dir"]:
             return
         out = pathlib.Path(self.p["output_dir"])
+        latency_ms = np.array(self.latency_s) * 1e3
         report = {"frames_in": self.status.counters.get("images_in", 0), "frames_tracked":
-                  self.status.counters.get("frames_tracked", 0), "frames_pending_at_shutdown": len(self.sync),
+                  self.status.counters.get("frames_tracked", 0),
+                  "frames_skipped": self.status.counters.get("frames_skipped", 0),
+                  "frames_pending_at_shutdown": len(self.sync), "queue_max": dict(self.queue_max),
+                  "odometry_latency_ms": {k: round(float(f(latency_ms)), 2) for k, f in (
+                      ("p50", lambda x: np.percentile(x, 50)), ("p95", lambda x: np.percentile(x, 95)),
+                      ("max", np.max))} if len(latency_ms) else None,
                   "counters": dict(sorted(self.status.counters.items())), "info": dict(self.status.info)}
         if self.engine is not None:
             report.update(save_trajectories(self.engine, self.T_bc, out))
         report["inertial_initialized_at_s"] = None if self.realigned_at_ns is None else self.realigned_at_ns * 1e-9
         out.mkdir(parents=True, exist_ok=True)
+        (out / "frames_processed.txt").write_text("".join(f"{t}\n" for t in self.processed_ns))
         (out / "frontend_report.json").write_text(json.dumps(report, indent=2))
         print(f"[frontend] wrote {out}/trajectory.txt ({report.get('frames_posed', 0)} frames), odometry.txt, "
               f"keyframes.txt, frontend_report.json", file=sys.stderr)

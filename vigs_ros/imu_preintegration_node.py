@@ -33,6 +33,7 @@ from msg_adapters.imu import imu_to_sample
 from msg_adapters.odometry import pose_to_odometry
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import NavStateData, PreintegrationData, msg_to_nav_state, preintegration_to_msg
+from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
 from vigs_core.imu.preintegration import Preintegrated, preintegrate
 from vigs_core.imu.propagation import ImuState, propagate_path
 from vigs_core.types import ImuNoise
@@ -40,7 +41,6 @@ from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
 from vigs_ros.runtime import VigsNode, run_nodes
-from vigs_ros.time_sync import ImuBuffer, ImuBufferConfig
 
 NODE_NAME = "imu_preintegration"
 

@@ -42,6 +42,8 @@ NODE_NAME = "loop_detector"
 F64 = torch.float64
 
 PARAMS = [
+    ParamSpec("process_nice", 10, "niceness increment of the node's process when it runs alone (not composed): "
+                                  "on a saturated CPU the frontend's tracking keeps its core"),
     ParamSpec("keyframe_topic", "/vigs/keyframes", "input vigs_msgs/Keyframe"),
     ParamSpec("frontend_update_topic", "/vigs/keyframe_pose_updates", "input vigs_msgs/KeyframePoseUpdate (BA)"),
     ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "output vigs_msgs/KeyframePoseUpdate after PGBA"),
@@ -59,6 +61,7 @@ class LoopDetectorNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
+        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         cv2.setNumThreads(int(self.p["torch_threads"]))
         self.config = build_config(LoopConfig(), self.p, "loop.")

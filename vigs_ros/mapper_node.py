@@ -44,6 +44,8 @@ from vigs_ros.runtime import VigsNode, run_nodes
 NODE_NAME = "mapper"
 
 PARAMS = [
+    ParamSpec("process_nice", 10, "niceness increment of the node's process when it runs alone (not composed): "
+                                  "on a saturated CPU the frontend's tracking keeps its core"),
     ParamSpec("keyframe_topic", "/vigs/keyframes", "input vigs_msgs/Keyframe"),
     ParamSpec("pose_update_topics", ["/vigs/keyframe_pose_updates", "/vigs/loop_pose_updates"],
               "input vigs_msgs/KeyframePoseUpdate topics (frontend BA, loop closure)"),
@@ -69,6 +71,7 @@ class MapperNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
+        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         self.config = build_config(MapperConfig(), self.p, "mapper.")
         self.types = RclpyTypes()

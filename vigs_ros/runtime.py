@@ -1,13 +1,16 @@
 """Running nodes: one node per process (each node's ``main``) or several in one process (composed).
 
 ``run_nodes`` initialises rclpy with the process's ``--ros-args`` (so ``--params-file``, remapping and
-``-p use_sim_time:=true`` work as in any ROS 2 node), spins the nodes in one executor (multi-threaded when
+``-p use_sim_time:=true`` work as in any ROS 2 node), lowers the process's priority by the node's
+``process_nice`` when it runs one node alone (the mapper and the loop detector: real-time tracking first; a
+composed process keeps the frontend's priority), spins the nodes in one executor (multi-threaded when
 there are several), and on SIGINT/SIGTERM (rclpy's signal handlers shut the context down) closes every node
 (``close()``: flush what must be saved) before destroying it. Exit code: 0 after a clean shutdown, 1 when a
 node raised.
 """
 from __future__ import annotations
 
+import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
@@ -43,6 +46,8 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     try:
         for factory in factories:
             nodes.append(factory(context=context))
+        if len(nodes) == 1 and getattr(nodes[0], "process_nice", 0) > 0:
+            os.nice(nodes[0].process_nice)
         if multithreaded is None:
             multithreaded = len(nodes) > 1
         executor = (MultiThreadedExecutor(num_threads=num_threads, context=context) if multithreaded

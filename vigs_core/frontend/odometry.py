@@ -32,6 +32,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -94,6 +95,10 @@ class OdometryConfig:
             ATE from 6.91 to 4.15 cm (first 30 s: 1.62 to 1.01 cm; but on the first 70 s with ``finest_scale=1``
             it raised it from 4.14 to 4.55 cm). The visual-inertial odometry leaves them free (the IMU fixes the
             scale; :meth:`vigs_core.vio.odometry.VisualInertialOdometry._holds_scale_gauge`).
+        cv_rescale_tolerance: the constant-velocity pose prediction extrapolates the last inter-frame motion
+            over time: when the gap to the new frame differs from the last gap by more than this fraction
+            (frames skipped by a live caller that fell behind, or dropped), the motion is scaled to the gap,
+            ``Exp(r Log T)``; within it the plain product ``T T_last`` is used.
     """
 
     grid_stride: int = 8
@@ -112,6 +117,7 @@ class OdometryConfig:
     min_confidence: float = 0.05
     solver_dtype: str = "float32"
     hold_fixed_disparity: bool = True
+    cv_rescale_tolerance: float = 0.25
 
     def __post_init__(self) -> None:
         if self.solver_dtype not in ("float32", "float64"):
@@ -173,15 +179,22 @@ class DenseOdometry:
         self._next_kf = 0
         self._init_candidates: list[tuple[int, np.ndarray, Correspondences]] = []  # (frame idx, image, corr)
         self._ref_image: np.ndarray | None = None
+        self._on_pose: Callable[[torch.Tensor], None] | None = None
 
     # ------------------------------------------------------------------ public
-    def process(self, t_ns: int, image: np.ndarray) -> torch.Tensor | None:
-        """Consume one frame; returns its world->camera pose (4, 4), or None while not yet initialised."""
+    def process(self, t_ns: int, image: np.ndarray,
+                on_pose: Callable[[torch.Tensor], None] | None = None) -> torch.Tensor | None:
+        """Consume one frame; returns its world->camera pose (4, 4), or None while not yet initialised.
+
+        ``on_pose`` is called with the frame's tracked pose as soon as it is known, before the keyframe work
+        (new keyframe, BA) that may follow: a live caller publishes odometry without waiting for the BA. The
+        returned pose is the causal one after that work (it differs from the tracked one on keyframes)."""
         self.frames.append(_Frame(int(t_ns)))
+        self._on_pose = on_pose
         if not self.initialized:
             self._process_uninitialized(image)
-            return self.frames[-1].odom
-        self._track(image)
+        else:
+            self._track(image)
         return self.frames[-1].odom
 
     def final_frame_poses(self) -> tuple[np.ndarray, torch.Tensor]:
@@ -518,12 +531,17 @@ class DenseOdometry:
         posed = []   # the last two posed frames before the current one, oldest first
         for f in itertools.islice(reversed(self.frames), 1, None):
             if f.odom is not None:
-                posed.insert(0, f.odom)
+                posed.insert(0, f)
                 if len(posed) == 2:
                     break
         if len(posed) == 1:
-            return posed[0]
-        pred = posed[1] @ se3_inverse(posed[0]) @ posed[1]
+            return posed[0].odom
+        step = posed[1].odom @ se3_inverse(posed[0].odom)
+        ratio = (self.frames[-1].t_ns - posed[1].t_ns) / max(posed[1].t_ns - posed[0].t_ns, 1)
+        if abs(ratio - 1.0) > self.config.cv_rescale_tolerance:
+            # frames skipped or dropped: constant velocity over time, not over frames, T^r = Exp(r Log T)
+            step = se3_exp(ratio * se3_log(step))
+        pred = step @ posed[1].odom
         # re-orthonormalise: each extrapolation doubles the rounding error of the rotation, which otherwise
         # grows from frame to frame until the poses overflow
         U, _, Vh = torch.linalg.svd(pred[:3, :3])
@@ -544,6 +562,8 @@ class DenseOdometry:
         self._toc("tracking", t0)
         f = self.frames[idx]
         f.ref, f.rel, f.odom = kf.id, pose @ se3_inverse(kf.pose), pose
+        if self._on_pose is not None:
+            self._on_pose(pose)
         if not self.policy.is_keyframe(corr.mean_flow, (f.t_ns - kf.t_ns) * 1e-9,
                                        self._translation_flow(kf, f.rel, corr)):
             return

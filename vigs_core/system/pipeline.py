@@ -40,44 +40,43 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
-from vigs_core.camera import CameraModel, Undistorter, inner_pinhole
-from vigs_core.frontend.odometry import DenseOdometry
+from vigs_core.camera import CameraModel
 from vigs_core.geometry import interpolate_poses, matrix_to_quat
 from vigs_core.loop import LoopClosureDriver
-from vigs_core.solver import Intrinsics
 from vigs_core.system.config import PipelineConfig
 from vigs_core.system.mapping import OnlineMapping
 from vigs_core.system.prefetch import FramePrefetcher
 from vigs_core.system.sources import InputSequence, open_input
-from vigs_core.types import ImuNoise, Trajectory
+from vigs_core.system.stream import OdometryStream, Preprocessor
+from vigs_core.types import ImuNoise, ImuSamples, Trajectory
 from vigs_core.vio.odometry import VisualInertialOdometry
 
 
-class Preprocessor:
-    """Undistorts to a pinhole camera and resizes to the processing resolution in one remap.
+class ImuFeed:
+    """Feeds a recording's IMU samples to an :class:`OdometryStream` as they would have arrived: before a frame at
+    ``t``, every sample up to and including the first one at or after ``t`` (what the frontend node's synchroniser
+    waits for before it releases the frame). Disordered or repeated stamps are sanitised first (with a warning)."""
 
-    Attributes:
-        camera: the pinhole camera of the output images.
-    """
+    def __init__(self, imu: ImuSamples | None, stream: OdometryStream) -> None:
+        from vigs_core.imu.samples import sanitize_samples
 
-    def __init__(self, src: CameraModel, width: int, height: int) -> None:
-        self._undistorter = None
-        if src.distortion != "none":
-            self.camera = inner_pinhole(src, width, height)
-            self._undistorter = Undistorter(src, self.camera)
-        else:
-            self.camera = src.resized(width, height) if (src.width, src.height) != (width, height) else src
+        if imu is not None and len(imu) > 1 and np.any(np.diff(imu.t_ns) <= 0):
+            imu = sanitize_samples(imu)
+        self.imu = imu if stream.inertial else None
+        self.stream = stream
+        self.next = 0
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        if self._undistorter is not None:
-            return self._undistorter.remap(image)
-        if image.shape != (self.camera.height, self.camera.width):
-            return cv2.resize(image, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
-        return image
+    def until(self, t_ns: int) -> None:
+        imu = self.imu
+        if imu is None:
+            return
+        end = min(int(np.searchsorted(imu.t_ns, t_ns, side="left")) + 1, len(imu))
+        for k in range(self.next, end):
+            self.stream.add_imu(int(imu.t_ns[k]), imu.gyro[k], imu.acc[k])
+        self.next = max(self.next, end)
 
 
 def poses_to_trajectory(t_ns: np.ndarray, T: np.ndarray) -> Trajectory:
@@ -170,7 +169,8 @@ def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np
 
 
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
-                 progress: bool = True, sequence: InputSequence | None = None) -> dict:
+                 progress: bool = True, sequence: InputSequence | None = None,
+                 only_ns: set[int] | None = None) -> dict:
     """Run the dense odometry over a recording and write the outputs (module docstring).
 
     Args:
@@ -179,22 +179,18 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         out_dir: output folder (created); None writes nothing.
         progress: show a progress bar on stderr.
         sequence: an already opened input (``input_path`` is then only used in the report).
+        only_ns: process only the frames with these stamps (ns) and skip the rest, as a live run that fell behind
+            did (the frontend node's ``frames_processed.txt``): the same input with the same skips gives the
+            same trajectory.
     Returns:
         The report (also written as ``report.json``).
     """
     cfg = config or PipelineConfig()
-    torch.set_num_threads(cfg.torch_threads)
-    cv2.setNumThreads(cfg.torch_threads)
     t_start = time.perf_counter()
     seq = sequence or open_input(input_path, cfg.image_topic)
-    pre = Preprocessor(seq.camera, cfg.width, cfg.height)
-    cam = pre.camera
-    intr = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy)
-    if cfg.imu.enabled and seq.imu is not None:
-        odo = VisualInertialOdometry(intr, cam.width, cam.height, seq.imu, seq.imu_noise or ImuNoise(), seq.T_BS,
-                                     cfg.odometry, cfg.imu)
-    else:
-        odo = DenseOdometry(intr, cam.width, cam.height, cfg.odometry)
+    stream = OdometryStream(seq.camera, cfg, seq.T_BS, (seq.imu_noise or ImuNoise()) if seq.imu is not None else None)
+    imu_feed = ImuFeed(seq.imu, stream)
+    odo, cam = stream.odometry, stream.camera
     mapping = OnlineMapping(cfg.mapping, odo, cam) if cfg.mapping.enabled else None
     loop = LoopClosureDriver(cfg.loop, odo, mapper=mapping and mapping.mapper,
                              on_update=mapping and mapping.on_correction) if cfg.loop.enabled else None
@@ -207,7 +203,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         bar = tqdm(total=total, desc=f"vigs run {seq.name}", unit="frame", file=sys.stderr)
     t_wait = 0.0
     n = 0
-    reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else pre(raw),
+    reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else stream.prepare(raw),
                              count=total * cfg.frame_stride)
     t_loop = time.perf_counter()
     try:
@@ -218,9 +214,13 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             except StopIteration:
                 break
             t_wait += time.perf_counter() - t0
+            if only_ns is not None and t_ns not in only_ns:
+                stream.skip(t_ns)
+                continue
+            imu_feed.until(t_ns)
+            stream.add_prepared(t_ns, image)
             if image is None:   # between strided frames
                 continue
-            odo.process(t_ns, image)
             if mapping is not None:
                 mapping.step(image)
             if loop is not None:
@@ -248,7 +248,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     report = {
         "input": str(input_path), "sequence": seq.name,
         "resolution": [cam.width, cam.height], "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
-        "frames": n, "frames_posed": int(len(t_ns)), "keyframes": int(len(tk)), "ba_calls": odo.ba_calls,
+        "frames": n, "frames_skipped": len(stream.skipped_ns), "frames_posed": int(len(t_ns)), "keyframes": int(len(tk)), "ba_calls": odo.ba_calls,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse
+from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
 from vigs_core.imu.inertial_init import inertial_only_init
 from vigs_core.imu.preintegration import (Preintegrated, preintegrate, preintegrate_intervals, preintegrate_rotation,
                                           stack_preintegrated)
@@ -59,16 +60,19 @@ class VisualInertialEstimator:
 
     Args:
         config: VIO settings.
-        imu: IMU samples of the whole run (body frame).
+        imu: the IMU record (body frame): a growing :class:`~vigs_core.imu.buffer.ImuBuffer` that the caller
+            appends to as samples arrive (streaming), or the samples of a whole recording.
         noise: IMU noise densities.
         T_bc: (4, 4) camera pose in the body frame (EuRoC ``T_BS`` of cam0); ``T_cb = T_bc^-1``.
     """
 
-    def __init__(self, config: VioConfig, imu: ImuSamples, noise: ImuNoise, T_bc: np.ndarray | torch.Tensor) -> None:
+    def __init__(self, config: VioConfig, imu: ImuBuffer | ImuSamples, noise: ImuNoise,
+                 T_bc: np.ndarray | torch.Tensor) -> None:
         self.config = config
-        self.imu, self.noise = imu, noise
+        self.imu_buffer = imu if isinstance(imu, ImuBuffer) else ImuBuffer.of(imu, ImuBufferConfig(max_age_s=None))
+        self.noise = noise
         self.T_cb = torch.linalg.inv(torch.as_tensor(np.asarray(T_bc), dtype=F64))
-        self.initializer = StagedInitializer(config, imu, noise, self.T_cb)
+        self.initializer = StagedInitializer(config, self.imu_buffer, noise, self.T_cb)
         self.states: dict[int, KeyframeInertial] = {}
         self.global_bias = torch.zeros(6, dtype=F64)
         self.R_wg = torch.eye(3, dtype=F64)
@@ -86,6 +90,11 @@ class VisualInertialEstimator:
 
     # ------------------------------------------------------------------ queries
     @property
+    def imu(self) -> ImuSamples:
+        """The IMU samples received so far (views of the buffer)."""
+        return self.imu_buffer.all()
+
+    @property
     def stage(self) -> Stage:
         return self.initializer.stage
 
@@ -100,7 +109,8 @@ class VisualInertialEstimator:
 
     def imu_covers(self, t0_ns: int, t1_ns: int) -> bool:
         """True when the IMU samples bracket ``[t0_ns, t1_ns]`` (keyframes outside stay vision-only)."""
-        return len(self.imu) >= 2 and int(self.imu.t_ns[0]) <= t0_ns and int(self.imu.t_ns[-1]) >= t1_ns
+        buf = self.imu_buffer
+        return len(buf) >= 2 and buf.earliest_ns <= t0_ns and buf.latest_ns >= t1_ns
 
     def prior_holds_gauge(self, ids: list[int]) -> bool:
         """True when the BA of window ``ids`` gets a marginalisation prior (it then fixes no keyframe)."""

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse
+from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
 from vigs_core.imu.inertial_init import InertialInit, InertialInitConfig, inertial_only_init
 from vigs_core.imu.residual import gravity_rotation
 from vigs_core.types import ImuNoise, ImuSamples
@@ -114,18 +115,25 @@ class StagedInitializer:
 
     Args:
         config: VIO settings (counts, switches, trust limits).
-        imu: all IMU samples of the run (or at least those covering the keyframes).
+        imu: the IMU record: a growing :class:`~vigs_core.imu.buffer.ImuBuffer` (streaming), or the samples of a
+            whole recording (or at least those covering the keyframes).
         noise: IMU noise densities.
         T_cb: (4, 4) body->camera extrinsic.
     """
 
-    def __init__(self, config: VioConfig, imu: ImuSamples, noise: ImuNoise, T_cb: torch.Tensor) -> None:
+    def __init__(self, config: VioConfig, imu: ImuBuffer | ImuSamples, noise: ImuNoise, T_cb: torch.Tensor) -> None:
         self.config = config
-        self.imu, self.noise = imu, noise
+        self.imu_buffer = imu if isinstance(imu, ImuBuffer) else ImuBuffer.of(imu, ImuBufferConfig(max_age_s=None))
+        self.noise = noise
         self.T_cb = T_cb.to(torch.float64)
         self.stage = Stage.VISION_ONLY
         self.joint_start = 0      # keyframe count at which joint VI-BA without staging began
         self.attempts: list[dict] = []
+
+    @property
+    def imu(self) -> ImuSamples:
+        """The IMU samples received so far (views of the buffer)."""
+        return self.imu_buffer.all()
 
     def _covers(self, stamps_ns: np.ndarray) -> bool:
         """True when the IMU samples bracket all stamps (ns)."""

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from vigs_core.frontend.odometry import DenseOdometry, Keyframe, OdometryConfig
+from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.imu.preintegration import preintegrate
 from vigs_core.imu.propagation import ImuState, predict_state
 from vigs_core.geometry import se3_inverse
@@ -61,13 +62,15 @@ class VisualInertialOdometry(DenseOdometry):
     Args:
         intrinsics: pinhole intrinsics of the (undistorted) input images.
         width, height: input image size, pixels.
-        imu: all IMU samples of the run (body frame, same clock as the images).
+        imu: the IMU record (body frame, same clock as the images): a growing
+            :class:`~vigs_core.imu.buffer.ImuBuffer` the caller appends to as samples arrive (streaming,
+            :class:`vigs_core.system.stream.OdometryStream`), or the samples of a whole recording.
         noise: IMU noise densities.
         T_bc: (4, 4) camera pose in the body (IMU) frame (EuRoC ``T_BS`` of cam0).
         config: front-end settings; vio: visual-inertial settings.
     """
 
-    def __init__(self, intrinsics: Intrinsics, width: int, height: int, imu: ImuSamples, noise: ImuNoise,
+    def __init__(self, intrinsics: Intrinsics, width: int, height: int, imu: ImuBuffer | ImuSamples, noise: ImuNoise,
                  T_bc: np.ndarray | torch.Tensor, config: OdometryConfig | None = None,
                  vio: VioConfig | None = None) -> None:
         super().__init__(intrinsics, width, height, config)
@@ -208,10 +211,10 @@ class VisualInertialOdometry(DenseOdometry):
                 f.odom = al.pose(f.odom)
 
     # ------------------------------------------------------------------ still start
-    def process(self, t_ns: int, image: np.ndarray) -> torch.Tensor | None:
+    def process(self, t_ns: int, image: np.ndarray, on_pose=None) -> torch.Tensor | None:
         """Consume one frame; its world->camera pose (4, 4), the first frame's while still (module docstring),
-        or None while not initialised."""
-        pose = super().process(t_ns, image)
+        or None while not initialised (``on_pose``: see :meth:`DenseOdometry.process`)."""
+        pose = super().process(t_ns, image, on_pose)
         if pose is None and self._still():
             self._held.append(int(t_ns))
             return torch.eye(4, dtype=torch.float64)
