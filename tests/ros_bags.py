@@ -13,6 +13,8 @@ from msg_adapters.image import numpy_to_image
 from msg_adapters.imu import sample_to_imu
 from msg_adapters.types import RosbagsTypes
 
+SAMPLE_BAG = Path(__file__).resolve().parent.parent / "bags" / "v1_01_easy_hybrid_376x240"   # the shipped sample
+SAMPLE_GT = SAMPLE_BAG.parent / f"{SAMPLE_BAG.name}_groundtruth_tum.txt"
 _TYPES: list = []
 
 

@@ -65,7 +65,8 @@ def test_imu_buffer_rejects_disorder_reports_gaps_and_brackets():
     assert len(buf) == 17 and buf.covers(95_000_000) and not buf.covers(95_000_001)
     s = buf.samples(32_000_000, 41_000_000)
     np.testing.assert_array_equal(s.t_ns, [30_000_000, 35_000_000, 40_000_000, 45_000_000])
-    buf.add(2_000_000_000, np.zeros(3), np.zeros(3))  # older than max_age_s behind the newest: dropped
+    buf.add(2_000_000_000, np.zeros(3), np.zeros(3))  # 1.9 s ahead: held until the next sample confirms it
+    buf.add(2_005_000_000, np.zeros(3), np.zeros(3))  # older than max_age_s behind the newest: dropped
     assert buf.earliest_ns == 95_000_000
 
 
@@ -146,3 +147,20 @@ def test_parse_remaps():
     assert parse_remaps(["/a:=/b", "/c:=/d"]) == {"/a": "/b", "/c": "/d"}
     with pytest.raises(ValueError, match="must look like"):
         parse_remaps(["/a=/b"])
+
+
+def test_imu_buffer_rejects_a_future_outlier_stamp_and_keeps_a_real_gap():
+    buf = ImuBuffer(ImuBufferConfig(nominal_rate_hz=200.0, max_jump_s=0.5))
+    for k in range(10):
+        assert buf.add(k * 5_000_000, np.zeros(3), np.zeros(3)) is None
+    # one sample stamped 1000 s ahead: held, then rejected when the stream goes on at its time base
+    assert "held" in buf.add(1000 * 10**9, np.ones(3), np.ones(3))
+    assert buf.latest_ns == 45_000_000 and not buf.covers(50_000_000)
+    assert "rejected as an outlier" in buf.add(50_000_000, np.zeros(3), np.zeros(3))
+    assert buf.latest_ns == 50_000_000
+    for k in range(11, 20):   # later samples are not taken for out-of-order ones
+        assert buf.add(k * 5_000_000, np.zeros(3), np.zeros(3)) is None
+    # a real 2 s gap: held, then kept when the next sample follows it
+    assert "held" in buf.add(2_095_000_000, np.zeros(3), np.zeros(3))
+    assert "IMU gap of 2000.0 ms" in buf.add(2_100_000_000, np.zeros(3), np.zeros(3))
+    np.testing.assert_array_equal(buf.all().t_ns[-3:], [95_000_000, 2_095_000_000, 2_100_000_000])

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_bags import write_prefix
+from ros_bags import SAMPLE_BAG as BAG, SAMPLE_GT as GT, write_prefix
 from ros_helpers import DOMAIN_ID, isolated_env
 
 from msg_adapters.odometry import odometry_to_pose
@@ -41,8 +41,6 @@ from vigs_core.io import read_tum
 from vigs_core.system.pipeline import poses_to_trajectory
 
 ROOT = Path(__file__).resolve().parent.parent
-BAG = ROOT / "bags" / "v1_01_easy_hybrid_376x240"
-GT = ROOT / "bags" / "v1_01_easy_hybrid_376x240_groundtruth_tum.txt"
 PREFIX_S = 13.0
 GT_SE3_ATE_M = 0.10
 RUN_MATCH_M = 0.001

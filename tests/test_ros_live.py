@@ -23,15 +23,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_bags import write_prefix
+from ros_bags import SAMPLE_BAG as BAG, SAMPLE_GT as GT, write_prefix
 from ros_helpers import isolated_env
 
 from vigs_core.eval import evaluate_trajectory
 from vigs_core.io import read_tum
 
 ROOT = Path(__file__).resolve().parent.parent
-BAG = ROOT / "bags" / "v1_01_easy_hybrid_376x240"
-GT = ROOT / "bags" / "v1_01_easy_hybrid_376x240_groundtruth_tum.txt"
 PREFIX_S = 20.0
 BUSY = 3
 MAX_P95_MS = 500.0

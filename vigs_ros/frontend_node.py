@@ -257,7 +257,7 @@ class FrontendNode(VigsNode):
         except ValueError:
             return  # reported by the IMU node
         self.imu_inbox.append((t_ns, gyro, acc))
-        self.imu_received_ns = t_ns if self.imu_received_ns is None else max(self.imu_received_ns, t_ns)
+        self.imu_received_ns = t_ns   # the newest arrival (not the largest stamp: an outlier stamp would stick)
         self.wake.set()
 
     def on_image(self, msg) -> None:

@@ -3,8 +3,10 @@ IMU-rate odometry propagated from the latest estimated state.
 
 Topics (names are parameters; see params/imu_preintegration.yaml):
 
-* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS): validated on arrival: malformed, out-of-order and
-  duplicated samples are dropped with a warning, gaps are reported.
+* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS): validated on arrival
+  (:class:`vigs_core.imu.buffer.ImuBuffer`): malformed, out-of-order and duplicated samples are dropped with a
+  warning, gaps are reported, a sample stamped far ahead of the stream is held until the next one and rejected
+  as an outlier when the stream goes on at its old time base.
 * in ``keyframe_event_topic`` (vigs_msgs/NavState, reliable): the frontend created a keyframe at that stamp;
   its biases are the current estimate. The window from the previous keyframe's stamp to this one is
   preintegrated (:func:`vigs_core.imu.preintegration.preintegrate`, Forster et al. T-RO 2017) once the IMU
@@ -112,8 +114,8 @@ class ImuPreintegrationNode(VigsNode):
         remark = self.buffer.add(t_ns, gyro, acc)
         if remark is not None:
             self.status.warn("imu_stream", remark)
-            if "dropped" in remark:
-                return
+        if self.buffer.latest_ns != t_ns:   # dropped (out of order), or held far ahead of the stream
+            return
         self.status.count("imu_in")
         self.serve_pending()
         self._since_odom += 1

@@ -25,6 +25,18 @@ class VigsNode(Node):
         """Release resources and flush outputs (override); the context may already be shut down."""
 
 
+def lower_priority(increment: int) -> None:
+    """Raise the niceness of every thread of this process by ``increment``. Linux keeps a niceness per thread and
+    ``os.nice`` changes only the caller's: a node's worker thread (the mapper's optimisation) and the DDS threads,
+    started before, would keep the old priority."""
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            now = os.getpriority(os.PRIO_PROCESS, int(tid))
+            os.setpriority(os.PRIO_PROCESS, int(tid), min(19, now + int(increment)))
+        except (ProcessLookupError, PermissionError):   # a thread that ended meanwhile
+            pass
+
+
 def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None = None,
               multithreaded: bool | None = None, num_threads: int | None = None) -> int:
     """Create the nodes from ``factories`` (each called with ``context=``), spin until shutdown, close them.
@@ -47,7 +59,7 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
         for factory in factories:
             nodes.append(factory(context=context))
         if len(nodes) == 1 and getattr(nodes[0], "process_nice", 0) > 0:
-            os.nice(nodes[0].process_nice)
+            lower_priority(nodes[0].process_nice)
         if multithreaded is None:
             multithreaded = len(nodes) > 1
         executor = (MultiThreadedExecutor(num_threads=num_threads, context=context) if multithreaded

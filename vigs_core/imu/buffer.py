@@ -4,7 +4,10 @@
 :meth:`ImuBuffer.samples` return :class:`~vigs_core.types.ImuSamples` views, so the preintegration code reads a
 streamed record exactly as it reads a whole recording. ``add`` validates each sample on arrival: a sample
 that is not newer than the previous one is rejected (never re-sorted into the past), a longer interval than
-``gap_factor`` nominal periods is reported as a gap. Views are valid until the next ``add``: one thread
+``gap_factor`` nominal periods is reported as a gap. A sample more than ``max_jump_s`` after the previous one
+is held until the next sample tells a gap (it follows the held one: both are kept) from an outlier stamp
+(it returns to the old time base: the held sample is rejected), so one sample stamped far in the future cannot
+make every later sample look out of order. Views are valid until the next ``add``: one thread
 writes and reads (the node's tracking thread, or ``vigs run``'s loop).
 """
 from __future__ import annotations
@@ -24,11 +27,14 @@ class ImuBufferConfig:
         gap_factor: an interval longer than ``gap_factor`` nominal periods is reported as a gap.
         max_age_s: samples older than this behind the newest one are dropped (s); None keeps all (an offline
             run that reports every frame's velocity at the end needs the whole record).
+        max_jump_s: a sample this much (s) after the previous one is held until the next one confirms it
+            (module docstring).
     """
 
     nominal_rate_hz: float = 200.0
     gap_factor: float = 2.5
     max_age_s: float | None = 30.0
+    max_jump_s: float = 0.5
 
 
 class ImuBuffer:
@@ -40,6 +46,7 @@ class ImuBuffer:
         self._v = np.zeros((capacity, 6), np.float64)  # gyro (rad/s), acc (m/s^2)
         self._lo = 0  # first live row
         self._hi = 0  # one past the last live row
+        self._held: tuple[int, np.ndarray, np.ndarray] | None = None   # a sample far ahead, awaiting the next
 
     @classmethod
     def of(cls, samples: ImuSamples, config: ImuBufferConfig | None = None) -> "ImuBuffer":
@@ -67,8 +74,28 @@ class ImuBuffer:
 
     def add(self, t_ns: int, gyro: np.ndarray, acc: np.ndarray) -> str | None:
         """Append one sample. Returns None if accepted without remark, else a warning text: the sample is
-        dropped when out of order or duplicated, and kept when it follows a gap."""
+        dropped when out of order or duplicated, kept when it follows a gap, held when far ahead (module
+        docstring)."""
         t_ns = int(t_ns)
+        remarks = []
+        if self._held is not None:
+            held, self._held = self._held, None
+            if t_ns > held[0]:    # the stream goes on after the jump: it was a gap
+                remarks.append(self._append(*held))
+            else:
+                remarks.append(f"IMU sample at {held[0]} ns was {(held[0] - self.latest_ns) * 1e-9:.3f} s ahead of "
+                               f"the stream, which went on at {t_ns} ns: rejected as an outlier stamp")
+        last = self.latest_ns
+        if last is not None and t_ns - last > self.config.max_jump_s * 1e9:
+            self._held = (t_ns, np.array(gyro, dtype=np.float64), np.array(acc, dtype=np.float64))
+            remarks.append(f"IMU sample at {t_ns} ns is {(t_ns - last) * 1e-9:.3f} s after the previous one: held "
+                           "until the next sample tells a gap from an outlier stamp")
+        else:
+            remarks.append(self._append(t_ns, gyro, acc))
+        remarks = [r for r in remarks if r]
+        return "; ".join(remarks) if remarks else None
+
+    def _append(self, t_ns: int, gyro: np.ndarray, acc: np.ndarray) -> str | None:
         remark = None
         last = self.latest_ns
         if last is not None:
@@ -105,6 +132,16 @@ class ImuBuffer:
     def covers(self, t_ns: int) -> bool:
         """True when a sample at or after ``t_ns`` has arrived."""
         return len(self) > 0 and self.latest_ns >= t_ns
+
+    def covers_interval(self, start_ns: int, end_ns: int, max_gap_ns: int | None = None) -> bool:
+        """True when samples bracket ``[start_ns, end_ns]`` and, with ``max_gap_ns``, no two consecutive samples
+        over it (the bracketing ones included) are further apart than that."""
+        if len(self) < 2 or self.earliest_ns > start_ns or self.latest_ns < end_ns:
+            return False
+        if max_gap_ns is None:
+            return True
+        t = self.samples(start_ns, end_ns).t_ns
+        return len(t) < 2 or int(np.diff(t).max()) <= max_gap_ns
 
     def samples(self, start_ns: int, end_ns: int) -> ImuSamples:
         """Samples in ``[start_ns, end_ns]`` plus the last one before and the first one after (when held),

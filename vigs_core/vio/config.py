@@ -58,6 +58,11 @@ class VioConfig:
             (:class:`~vigs_core.imu.inertial_init.InertialInitConfig` ``bias_random_walk``) instead of one
             bias for its window.
         scheme: preintegration scheme (see :mod:`vigs_core.imu.preintegration`).
+        max_imu_gap_s: the IMU is not integrated across a gap longer than this (s): a frame or a BA window whose
+            interval holds such a gap gets no IMU prediction and no inertial terms (tracked vision-only against
+            the metric map, whose scale the held fixed-keyframe depth carries), a keyframe after it takes its
+            velocity from the keyframe positions, and the inertial terms resume once the window has passed the
+            gap. Integrating across it (the linear signal model) sent a 2 s gap's trajectory kilometres away.
         marginalize: once the map is metric, a keyframe leaving the BA window is marginalised into a Gaussian
             prior on the window's remaining poses, velocities and biases (:mod:`vigs_core.vio.marginalization`),
             and BA holds no keyframe fixed (the prior carries the gauge and the window's scale and velocity
@@ -117,6 +122,7 @@ class VioConfig:
     max_init_gravity_std_deg: float = 2.0
     init_bias_random_walk: bool = True
     scheme: str = "closed_form"
+    max_imu_gap_s: float = 0.1
     marginalize: bool = False
     marginalize_visual: bool = True
     metric_fixed_keyframes: int = 1

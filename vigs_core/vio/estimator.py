@@ -108,9 +108,9 @@ class VisualInertialEstimator:
         return self.R_wg @ torch.tensor([0.0, 0.0, -self.config.gravity], dtype=F64)
 
     def imu_covers(self, t0_ns: int, t1_ns: int) -> bool:
-        """True when the IMU samples bracket ``[t0_ns, t1_ns]`` (keyframes outside stay vision-only)."""
-        buf = self.imu_buffer
-        return len(buf) >= 2 and buf.earliest_ns <= t0_ns and buf.latest_ns >= t1_ns
+        """True when the IMU samples bracket ``[t0_ns, t1_ns]`` with no gap over ``max_imu_gap_s`` (keyframes
+        outside, or across a gap, stay vision-only)."""
+        return self.imu_buffer.covers_interval(t0_ns, t1_ns, int(self.config.max_imu_gap_s * 1e9))
 
     def prior_holds_gauge(self, ids: list[int]) -> bool:
         """True when the BA of window ``ids`` gets a marginalisation prior (it then fixes no keyframe)."""
@@ -198,8 +198,8 @@ class VisualInertialEstimator:
               anchored: set[int] | None = None) -> tuple[InertialTerms, InertialState] | None:
         """Inertial terms and state of a BA window of consecutive keyframes ``ids`` (oldest first), or None
         when no inertial terms apply (vision-only stage, fusion off, fewer than two keyframes, no IMU data over
-        the window). Once metric, the window gets the marginalisation prior when one exists
-        (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the window's fixed ones) keep their
+        the window, or an IMU gap over ``max_imu_gap_s`` in it: the window is then vision-only). Once metric,
+        the window gets the marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the window's fixed ones) keep their
         velocity and bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:

@@ -136,9 +136,9 @@ class StagedInitializer:
         return self.imu_buffer.all()
 
     def _covers(self, stamps_ns: np.ndarray) -> bool:
-        """True when the IMU samples bracket all stamps (ns)."""
-        imu = self.imu
-        return len(imu) >= 2 and int(imu.t_ns[0]) <= int(stamps_ns[0]) and int(imu.t_ns[-1]) >= int(stamps_ns[-1])
+        """True when the IMU samples bracket all stamps (ns) with no gap over ``max_imu_gap_s``."""
+        return self.imu_buffer.covers_interval(int(stamps_ns[0]), int(stamps_ns[-1]),
+                                               int(self.config.max_imu_gap_s * 1e9))
 
     def inertial_config(self) -> InertialInitConfig:
         c = self.config

@@ -86,6 +86,11 @@ class VisualInertialOdometry(DenseOdometry):
         velocity = None
         if self._prediction is not None and self._prediction[0] == kf.t_ns:
             velocity = self._prediction[1].velocity
+        elif self.vio.metric and self.vio.states:
+            prev = self.keyframes[max(self.vio.states)]
+            if not self.vio.imu_covers(prev.t_ns, kf.t_ns):   # after an IMU gap: the keyframes' own velocity
+                p0, p1 = (se3_inverse(k.pose.to(torch.float64)) @ self.vio.T_cb for k in (prev, kf))
+                velocity = (p1[:3, 3] - p0[:3, 3]) / ((kf.t_ns - prev.t_ns) * 1e-9)
         self.vio.add_keyframe(kf.id, kf.t_ns, velocity)
         return kf
 
