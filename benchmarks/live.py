@@ -5,7 +5,8 @@ Runs ``vigs launch --bag BAG`` (separate node processes; the replay publishes ``
 process records the arrival time of every ``/image``, ``/imu``, ``/odometry`` and ``/vigs/imu_odometry`` message
 and the last ``/vigs/status`` of every node. Per run:
 
-* frames received by the probe, tracked / skipped (tracking behind) by the frontend (its frontend_report.json);
+* frames received by the probe, tracked / skipped (tracking behind) by the frontend and the images it never got
+  (counted from the gaps in the stamps; its frontend_report.json);
 * ``/odometry`` latency p50 / p95 / max: its arrival minus the arrival of the image with the same stamp, as a
   subscriber sees it (transport included); the same for ``/vigs/imu_odometry`` against ``/imu``, and its rate
   (messages per second of bag time between its first and last message);
@@ -192,6 +193,7 @@ def summarize(r: dict, gt) -> dict:
     lat, ilat = probe.latency_ms("odom", "image"), probe.latency_ms("imu_odom", "imu")
     return {
         "images": len(probe.at["image"]), "tracked": rep.get("frames_tracked"), "skipped": rep.get("frames_skipped"),
+        "lost": rep.get("frames_lost_before_node"),
         "odometry": len(probe.at["odom"]), "lat_p50": pct(lat, 50), "lat_p95": pct(lat, 95),
         "lat_max": float(lat.max()) if len(lat) else float("nan"),
         "imu_odom_hz": (len(imu_t) - 1) / imu_span if imu_span > 0 else 0.0,
@@ -251,7 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, label, f in rows:
         cpu = ", ".join(f"{k} {v:.0f}% {f['rss'].get(k, 0):.0f} MB" for k, v in f["cpu"].items())
         print(f"{name[:28]:<28} {label:<13} wall {f['wall_s']:.0f} s; CPU of one core and peak RSS: {cpu}; "
-              f"deepest queues {f['queue_max']}; mapper keyframes {f['mapper_kf']}, pending {f['mapper_pending']}")
+              f"deepest queues {f['queue_max']}; images lost before the frontend {f['lost']}; mapper keyframes "
+              f"{f['mapper_kf']}, pending {f['mapper_pending']}")
     if args.json:
         Path(args.json).write_text(json.dumps([{"bag": n, "run": l, **f} for n, l, f in rows], indent=2))
     return 0

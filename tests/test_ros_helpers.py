@@ -164,3 +164,12 @@ def test_imu_buffer_rejects_a_future_outlier_stamp_and_keeps_a_real_gap():
     assert "held" in buf.add(2_095_000_000, np.zeros(3), np.zeros(3))
     assert "IMU gap of 2000.0 ms" in buf.add(2_100_000_000, np.zeros(3), np.zeros(3))
     np.testing.assert_array_equal(buf.all().t_ns[-3:], [95_000_000, 2_095_000_000, 2_100_000_000])
+
+
+def test_stamp_gaps_count_the_frames_missing_between_stamps():
+    from vigs_ros.time_sync import StampGaps
+
+    gaps = StampGaps()
+    stamps = [k * 50_000_000 + (k % 3) * 1_000_000 for k in range(10)] + [650_000_000, 700_000_000, 1_000_000_000]
+    assert [gaps.add(t) for t in stamps] == [0] * 10 + [3, 0, 5]
+    assert gaps.add(990_000_000) == 0   # not after the last: not a gap

@@ -97,7 +97,7 @@ from vigs_ros.frontend_engine import FrontendEngine
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
 from vigs_ros.runtime import VigsNode, run_nodes
-from vigs_ros.time_sync import FrameSynchronizer
+from vigs_ros.time_sync import FrameSynchronizer, StampGaps
 
 NODE_NAME = "frontend"
 IDENTITY_16 = [float(v) for v in np.eye(4).reshape(-1)]
@@ -195,6 +195,7 @@ class FrontendNode(VigsNode):
         self.processed_ns: list[int] = []
         self.latency_s: deque[float] = deque(maxlen=10000)   # image arrival -> odometry publish (wall s)
         self.queue_max = {"imu_samples": 0, "frames": 0}     # deepest queues seen by the tracking thread
+        self.image_gaps = StampGaps()
         self.worker = threading.Thread(target=self.work, name="frontend-tracking", daemon=True)
 
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
@@ -272,6 +273,11 @@ class FrontendNode(VigsNode):
             self.status.warn("image", f"image rejected: {exc}")
             self.frame_done(msg.header)
             return
+        lost = self.image_gaps.add(stamp_to_ns(msg.header.stamp))
+        if lost:
+            self.status.count("frames_lost_before_node", lost)
+            self.status.warn("frames_lost", f"{lost} image(s) missing before {stamp_to_ns(msg.header.stamp)} ns: "
+                                            "dropped by the subscription queue or the transport")
         if encoding not in ("mono8", "rgb8", "bgr8"):
             self.status.warn("encoding", f"image encoding {encoding!r} is not an intensity image; expected mono8, "
                                          "rgb8 or bgr8")
@@ -500,6 +506,7 @@ class FrontendNode(VigsNode):
         report = {"frames_in": self.status.counters.get("images_in", 0), "frames_tracked":
                   self.status.counters.get("frames_tracked", 0),
                   "frames_skipped": self.status.counters.get("frames_skipped", 0),
+                  "frames_lost_before_node": self.status.counters.get("frames_lost_before_node", 0),
                   "frames_pending_at_shutdown": len(self.sync), "queue_max": dict(self.queue_max),
                   "odometry_latency_ms": {k: round(float(f(latency_ms)), 2) for k, f in (
                       ("p50", lambda x: np.percentile(x, 50)), ("p95", lambda x: np.percentile(x, 95)),

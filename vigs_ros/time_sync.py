@@ -55,3 +55,26 @@ class FrameSynchronizer:
             self._pending.popleft()
             out.append((t_imu, payload, complete))
         return out
+
+
+class StampGaps:
+    """Counts the frames missing from a stream between consecutive stamps: an interval of ``r`` typical
+    intervals (the median of the last ``window`` ones) with ``r > gap_factor`` lost ``round(r) - 1`` frames
+    (images a subscriber's queue or the transport dropped before the node saw them)."""
+
+    def __init__(self, window: int = 50, gap_factor: float = 1.5) -> None:
+        self.gap_factor = gap_factor
+        self._intervals: deque[int] = deque(maxlen=window)
+        self._last: int | None = None
+
+    def add(self, t_ns: int) -> int:
+        """The next stamp; returns how many frames are missing before it (0 for a stamp not after the last)."""
+        last, self._last = self._last, max(int(t_ns), self._last or int(t_ns))
+        if last is None or t_ns <= last:
+            return 0
+        dt = int(t_ns) - last
+        typical = sorted(self._intervals)[len(self._intervals) // 2] if len(self._intervals) >= 5 else None
+        self._intervals.append(dt)
+        if typical is None or dt <= self.gap_factor * typical:
+            return 0
+        return max(int(round(dt / typical)) - 1, 0)
