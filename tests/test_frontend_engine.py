@@ -56,3 +56,22 @@ def test_small_moves_accumulate_until_they_pass_the_tolerance():
         engine.report_keyframes(out, metric=False)
         reported.append(3 in out.updated_keyframes)
     assert reported == [False, False, True, False, False]
+
+
+def test_a_pose_after_a_loop_correction_maps_back_to_the_uncorrected_world():
+    """REP-105's odom continues across a loop correction by the motion the odometry would have given without it:
+    a frame's corrected pose maps back through its reference keyframe's Sim(3) correction."""
+    engine, T_wc = engine_with_keyframe()
+    T_new = se3_exp(torch.tensor([1.0, 0.3, -0.2, 0.0, 0.1, 0.05], dtype=D)).numpy()
+    c = 1.3
+    assert engine.apply_corrections({3: T_new}, {3: c}) == 1
+    T_old = T_wc.numpy() @ se3_exp(torch.tensor([0.02, 0.0, 0.01, 0.0, 0.01, 0.0], dtype=D)).numpy()
+    # the same frame in the corrected world: rotation by R_c, position by the similarity x -> c R_c x + t_c
+    C = engine.last_corrections[3]
+    T_corrected = np.eye(4)
+    T_corrected[:3, :3] = (C[:3, :3] / c) @ T_old[:3, :3]
+    T_corrected[:3, 3] = C[:3, :3] @ T_old[:3, 3] + C[:3, 3]
+    np.testing.assert_allclose(engine.pose_before_correction(T_corrected, 3), T_old, atol=1e-9)
+    np.testing.assert_allclose(T_corrected[:3, 3], T_new[:3, 3] + c * T_new[:3, :3] @ (
+        np.linalg.inv(T_wc.numpy()) @ np.append(T_old[:3, 3], 1.0))[:3], atol=1e-9)   # the keyframe moved to T_new
+    assert engine.pose_before_correction(T_corrected, 4) is None

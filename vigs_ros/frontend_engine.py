@@ -79,6 +79,7 @@ class FrontendEngine:
         self.pose_update_tolerance = pose_update_tolerance
         self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
         self._metric = False
+        self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
 
     @property
     def inertial(self) -> bool:
@@ -138,6 +139,7 @@ class FrontendEngine:
             corrections[int(k)] = S @ kf.pose.to(torch.float64)  # S' T_WC^-1, and kf.pose is T_cw = T_WC^-1
         if not corrections:
             return 0
+        self.last_corrections = {k: C.numpy() for k, C in corrections.items()}
         updates = apply_to_odometry(self.odometry, corrections)
         if self.inertial:
             for k, C in corrections.items():
@@ -147,6 +149,21 @@ class FrontendEngine:
         for k, (T_wc, _) in updates.items():   # the loop detector publishes these corrections itself
             self._published[k] = (T_wc.numpy(), self.odometry.keyframes[k].disp)
         return len(updates)
+
+    def pose_before_correction(self, T_wc: np.ndarray, kf_id: int | None) -> np.ndarray | None:
+        """``T_wc`` (4, 4) of a frame tracked after the last :meth:`apply_corrections`, mapped back to the world
+        before it through the correction of the frame's reference keyframe ``kf_id``, ``x_old = C^-1 x_new`` with
+        ``C = [c R_c, t_c]``: the pose the odometry would have given without the correction (REP-105's odom
+        continues by that motion). None when that keyframe was not corrected."""
+        C = self.last_corrections.get(kf_id) if kf_id is not None else None
+        if C is None:
+            return None
+        c = float(np.cbrt(np.linalg.det(C[:3, :3])))
+        R = C[:3, :3] / c
+        out = np.eye(4)
+        out[:3, :3] = R.T @ T_wc[:3, :3]
+        out[:3, 3] = R.T @ (T_wc[:3, 3] - C[:3, 3]) / c
+        return out
 
     def keyframe_state(self, kf_id: int) -> KeyframeState:
         """The keyframe's velocity and biases (zeros for the vision-only core)."""

@@ -179,6 +179,7 @@ class FrontendNode(VigsNode):
         self.frames = Rep105Frames()
         self.path_poses = []
         self.path_stale = False  # a correction moved the map frame: rebuild the path at the next frame
+        self.after_correction = False   # a loop correction was applied since the last published pose
         self.first_image_wall: float | None = None
         self.held_for_camera: list[tuple[np.ndarray, str, object]] = []  # (image, encoding, header)
         self.frames_since_path = 0
@@ -411,6 +412,7 @@ class FrontendNode(VigsNode):
         n = self.engine.apply_corrections(dict(zip(ids, update.poses)), dict(zip(ids, update.scales)))
         if n:
             self.frames.mark_correction()
+            self.after_correction = True
             self.path_stale = True
             self.status.count("corrections_applied")
             self.get_logger().info(f"applied loop-closure corrections to {n} keyframes")
@@ -422,7 +424,12 @@ class FrontendNode(VigsNode):
     def publish_pose(self, t_ns: int, T_wc: np.ndarray, arrived: float) -> None:
         """Odometry and ``/tf`` of a frame, as soon as its pose is tracked (before the keyframe work)."""
         p = self.p
-        T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc))
+        before = None
+        if self.after_correction:   # odom continues by the motion the odometry would have given uncorrected
+            self.after_correction = False
+            T_before = self.engine.pose_before_correction(T_wc, self.engine.odometry.frames[-1].ref)
+            before = None if T_before is None else body_from_camera(T_before, self.T_bc)
+        T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc), before)
         self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
         self.latency_s.append(time.monotonic() - arrived)
         self.status.count("odometry_out")
