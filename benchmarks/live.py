@@ -115,8 +115,10 @@ def run_graph(bag: Path, out: Path, pace: list[str], env: dict, compressed: bool
                       f"mapper:\n  ros__parameters:\n    map_path: {out / 'map.ply'}\n")
     probe = Probe(int(env["ROS_DOMAIN_ID"]), compressed)
     busy = busy_processes(starve)
+    # the replay starts once /image and /imu have a subscriber: the probe is one, so give the node processes
+    # time to start and match before the first message (else the frontend misses the first seconds)
     cmd = [sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(bag), "--params", str(params),
-           "--linger", "5", *pace]
+           "--linger", "5", "--settle", "8", *pace]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     launcher = psutil.Process(proc.pid)

@@ -1,8 +1,9 @@
-"""Time synchronisation of camera and IMU streams, with validation of the IMU stream on arrival.
+"""Time synchronisation of camera and IMU streams, and the count of frames missing from a stream.
 
 Time offset convention (Kalibr's ``timeshift_cam_imu``): an image stamped ``t_cam`` was taken at IMU time
 ``t_imu = t_cam + time_offset_ns``. Images are released to the estimator in stamp order once the IMU buffer
-reaches their IMU time, so every frame sees all IMU samples up to it.
+(:class:`vigs_core.imu.buffer.ImuBuffer`, which validates the IMU stream on arrival) reaches their IMU time, so
+every frame sees all IMU samples up to it.
 """
 from __future__ import annotations
 
