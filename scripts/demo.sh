@@ -77,5 +77,6 @@ echo "  trajectory.txt       every frame, final estimates (TUM, body pose in the
 echo "  odometry.txt         every frame as first estimated (causal; TUM)"
 echo "  keyframes.txt        keyframes, final estimates (TUM)"
 echo "  map.ply, map.json    Gaussian map (3DGS PLY layout) and its sidecar"
-echo "  frontend_report.json frame counts, IMU initialisation, node counters"
+echo "  frontend_report.json frame counts (tracked, skipped), IMU initialisation, latency, node counters"
+echo "  frames_processed.txt stamps of the tracked frames (vigs run --frames-from replays the run)"
 echo "  accuracy_*.txt       the tables above; launch.log the graph's log"

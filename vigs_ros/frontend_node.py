@@ -526,7 +526,7 @@ class FrontendNode(VigsNode):
         (out / "frames_processed.txt").write_text("".join(f"{t}\n" for t in self.processed_ns))
         (out / "frontend_report.json").write_text(json.dumps(report, indent=2))
         print(f"[frontend] wrote {out}/trajectory.txt ({report.get('frames_posed', 0)} frames), odometry.txt, "
-              f"keyframes.txt, frontend_report.json", file=sys.stderr)
+              f"keyframes.txt, frames_processed.txt, frontend_report.json", file=sys.stderr)
 
     def nav_state(self, kf_id: int, t_ns: int, T_wc: np.ndarray, state, inertial: bool) -> NavStateData:
         """The body's navigation state at a keyframe (pose from the camera pose and T_body_camera)."""
