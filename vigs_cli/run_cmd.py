@@ -57,14 +57,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def read_stamps(path: str) -> set[int]:
-    """Integer stamps (ns) of the first column of a text file ('#' comments and blank lines skipped)."""
-    stamps = set()
-    with open(path) as f:
-        for n, line in enumerate(f, 1):
-            line = line.split("#", 1)[0].strip()
-            if line:
-                try:
-                    stamps.add(int(line.split()[0]))
-                except ValueError:
-                    raise ValueError(f"{path}:{n}: expected an integer stamp in ns, got {line.split()[0]!r}") from None
-    return stamps
+    """The stamps (ns) a one-column text file lists ('#' comments and blank lines skipped)."""
+    from vigs_core.io.text_table import read_stamped_rows
+
+    t_ns, _, _ = read_stamped_rows(path, (1,), "whitespace_or_comma", "ns", "timestamp[ns]")
+    return {int(t) for t in t_ns}

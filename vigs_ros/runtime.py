@@ -17,12 +17,18 @@ from collections.abc import Callable, Sequence
 
 from rclpy.node import Node
 
+from vigs_ros.params import ParamSpec
+
 
 class VigsNode(Node):
     """Base of the VIGS nodes: ``close()`` is called once at shutdown, before ``destroy_node``."""
 
     def close(self) -> None:
         """Release resources and flush outputs (override); the context may already be shut down."""
+
+
+PROCESS_NICE = ParamSpec("process_nice", 10, "niceness increment of the node's process when it runs alone (not "
+                                            "composed): on a saturated CPU the frontend's tracking keeps its core")
 
 
 def lower_priority(increment: int) -> None:

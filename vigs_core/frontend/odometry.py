@@ -195,7 +195,15 @@ class DenseOdometry:
             self._process_uninitialized(image)
         else:
             self._track(image)
+        if self.frames[-1].odom is not None:   # posed without tracking (the initialisation's frame)
+            self._send_pose(self.frames[-1].odom)
         return self.frames[-1].odom
+
+    def _send_pose(self, pose: torch.Tensor) -> None:
+        """Give ``process``'s ``on_pose`` the frame's pose, once per frame."""
+        if self._on_pose is not None:
+            on_pose, self._on_pose = self._on_pose, None
+            on_pose(pose)
 
     def final_frame_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and world->camera poses (N, 4, 4) of every posed frame, relative to the final
@@ -562,8 +570,7 @@ class DenseOdometry:
         self._toc("tracking", t0)
         f = self.frames[idx]
         f.ref, f.rel, f.odom = kf.id, pose @ se3_inverse(kf.pose), pose
-        if self._on_pose is not None:
-            self._on_pose(pose)
+        self._send_pose(pose)
         if not self.policy.is_keyframe(corr.mean_flow, (f.t_ns - kf.t_ns) * 1e-9,
                                        self._translation_flow(kf, f.rel, corr)):
             return

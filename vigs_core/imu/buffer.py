@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vigs_core.imu.samples import sanitize_samples
+from vigs_core.imu.samples import ordered_samples
 from vigs_core.types import ImuSamples
 
 
@@ -49,13 +49,15 @@ class ImuBuffer:
         self._held: tuple[int, np.ndarray, np.ndarray] | None = None   # a sample far ahead, awaiting the next
 
     @classmethod
-    def of(cls, samples: ImuSamples, config: ImuBufferConfig | None = None) -> "ImuBuffer":
-        """A buffer holding ``samples`` (a recording with disordered or repeated stamps is sanitised, with a
-        warning: :func:`vigs_core.imu.samples.sanitize_samples`)."""
-        if len(samples) > 1 and np.any(np.diff(samples.t_ns) <= 0):
-            samples = sanitize_samples(samples)
+    def of(cls, samples: "ImuBuffer | ImuSamples") -> "ImuBuffer":
+        """``samples`` when already a buffer, else a buffer holding the whole recording ``samples`` (kept whole:
+        ``max_age_s`` None; disordered or repeated stamps are sanitised with a warning,
+        :func:`vigs_core.imu.samples.ordered_samples`)."""
+        if isinstance(samples, ImuBuffer):
+            return samples
+        samples = ordered_samples(samples)
         t = np.asarray(samples.t_ns, dtype=np.int64)
-        buf = cls(config, capacity=max(len(t), 16))
+        buf = cls(ImuBufferConfig(max_age_s=None), capacity=max(len(t), 16))
         buf._t[:len(t)] = t
         buf._v[:len(t), :3], buf._v[:len(t), 3:] = samples.gyro, samples.acc
         buf._hi = len(t)

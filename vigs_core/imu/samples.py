@@ -66,6 +66,13 @@ def find_stream_defects(t_ns: np.ndarray, rate_hz: float | None = None, gap_fact
     return StreamDefects(out_of_order, len(t_ns) - len(t_sorted), gaps.astype(np.int64), period)
 
 
+def ordered_samples(imu: ImuSamples) -> ImuSamples:
+    """``imu`` itself when its stamps increase strictly, else :func:`sanitize_samples` of it (with warnings)."""
+    if len(imu) > 1 and np.any(np.diff(imu.t_ns) <= 0):
+        return sanitize_samples(imu)
+    return imu
+
+
 def sanitize_samples(imu: ImuSamples, rate_hz: float | None = None, gap_factor: float = 1.5) -> ImuSamples:
     """Return the samples sorted by stamp with repeated stamps dropped (first kept), warning on every defect.
 

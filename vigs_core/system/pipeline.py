@@ -45,6 +45,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import interpolate_poses, matrix_to_quat
+from vigs_core.imu.samples import ordered_samples
 from vigs_core.loop import LoopClosureDriver
 from vigs_core.system.config import PipelineConfig
 from vigs_core.system.mapping import OnlineMapping
@@ -61,11 +62,7 @@ class ImuFeed:
     waits for before it releases the frame). Disordered or repeated stamps are sanitised first (with a warning)."""
 
     def __init__(self, imu: ImuSamples | None, stream: OdometryStream) -> None:
-        from vigs_core.imu.samples import sanitize_samples
-
-        if imu is not None and len(imu) > 1 and np.any(np.diff(imu.t_ns) <= 0):
-            imu = sanitize_samples(imu)
-        self.imu = imu if stream.inertial else None
+        self.imu = ordered_samples(imu) if imu is not None and stream.inertial else None
         self.stream = stream
         self.next = 0
 

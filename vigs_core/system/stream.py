@@ -81,7 +81,6 @@ class OdometryStream:
         else:
             self.odometry = DenseOdometry(intr, cam.width, cam.height, config.odometry)
         self.frames_in = 0          # frames given to add_image / add_prepared (strided ones included)
-        self.frames_processed = 0
         self.skipped_ns: list[int] = []
 
     @property
@@ -123,18 +122,10 @@ class OdometryStream:
         """Process one image already prepared (:meth:`prepare`), after the IMU samples up to its stamp.
 
         Every ``config.frame_stride``-th image is processed; the others are counted and ignored (``image`` may be
-        None for them, :meth:`takes_next`). Returns the
-        frame's causal world->camera pose ``T_cw`` (4, 4) or None (not initialised, or strided out).
+        None for them, :meth:`takes_next`). Returns the frame's causal world->camera pose ``T_cw`` (4, 4) or None
+        (not initialised, or strided out).
         ``on_pose(T_cw)`` is called once per posed frame as soon as its tracked pose is known, before the
         keyframe work (:meth:`DenseOdometry.process`)."""
         takes = self.takes_next()
         self.frames_in += 1
-        if not takes:
-            return None
-        called = []
-        notify = None if on_pose is None else (lambda T: (called.append(True), on_pose(T)))
-        pose = self.odometry.process(int(t_ns), image, notify)
-        self.frames_processed += 1
-        if pose is not None and on_pose is not None and not called:   # posed without tracking (still start)
-            on_pose(pose)
-        return pose
+        return self.odometry.process(int(t_ns), image, on_pose) if takes else None

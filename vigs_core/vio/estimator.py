@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse
-from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
+from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.imu.inertial_init import inertial_only_init
 from vigs_core.imu.preintegration import (Preintegrated, preintegrate, preintegrate_intervals, preintegrate_rotation,
                                           stack_preintegrated)
@@ -69,7 +69,7 @@ class VisualInertialEstimator:
     def __init__(self, config: VioConfig, imu: ImuBuffer | ImuSamples, noise: ImuNoise,
                  T_bc: np.ndarray | torch.Tensor) -> None:
         self.config = config
-        self.imu_buffer = imu if isinstance(imu, ImuBuffer) else ImuBuffer.of(imu, ImuBufferConfig(max_age_s=None))
+        self.imu_buffer = ImuBuffer.of(imu)
         self.noise = noise
         self.T_cb = torch.linalg.inv(torch.as_tensor(np.asarray(T_bc), dtype=F64))
         self.initializer = StagedInitializer(config, self.imu_buffer, noise, self.T_cb)
@@ -199,8 +199,8 @@ class VisualInertialEstimator:
         """Inertial terms and state of a BA window of consecutive keyframes ``ids`` (oldest first), or None
         when no inertial terms apply (vision-only stage, fusion off, fewer than two keyframes, no IMU data over
         the window, or an IMU gap over ``max_imu_gap_s`` in it: the window is then vision-only). Once metric,
-        the window gets the marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the window's fixed ones) keep their
-        velocity and bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
+        the window gets the marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes
+        in ``anchored`` (the window's fixed ones) keep their velocity and bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
             return None

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse
-from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
+from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.imu.inertial_init import InertialInit, InertialInitConfig, inertial_only_init
 from vigs_core.imu.residual import gravity_rotation
 from vigs_core.types import ImuNoise, ImuSamples
@@ -123,7 +123,7 @@ class StagedInitializer:
 
     def __init__(self, config: VioConfig, imu: ImuBuffer | ImuSamples, noise: ImuNoise, T_cb: torch.Tensor) -> None:
         self.config = config
-        self.imu_buffer = imu if isinstance(imu, ImuBuffer) else ImuBuffer.of(imu, ImuBufferConfig(max_age_s=None))
+        self.imu_buffer = ImuBuffer.of(imu)
         self.noise = noise
         self.T_cb = T_cb.to(torch.float64)
         self.stage = Stage.VISION_ONLY

@@ -39,6 +39,8 @@ With ``VioConfig.enabled`` off it behaves exactly like the vision-only odometry.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
@@ -216,13 +218,15 @@ class VisualInertialOdometry(DenseOdometry):
                 f.odom = al.pose(f.odom)
 
     # ------------------------------------------------------------------ still start
-    def process(self, t_ns: int, image: np.ndarray, on_pose=None) -> torch.Tensor | None:
+    def process(self, t_ns: int, image: np.ndarray,
+                on_pose: Callable[[torch.Tensor], None] | None = None) -> torch.Tensor | None:
         """Consume one frame; its world->camera pose (4, 4), the first frame's while still (module docstring),
         or None while not initialised (``on_pose``: see :meth:`DenseOdometry.process`)."""
         pose = super().process(t_ns, image, on_pose)
         if pose is None and self._still():
             self._held.append(int(t_ns))
-            return torch.eye(4, dtype=torch.float64)
+            pose = torch.eye(4, dtype=torch.float64)
+            self._send_pose(pose)
         return pose
 
     def _still(self) -> bool:
