@@ -2,6 +2,10 @@
 ``vigs run`` on an EuRoC ASL folder."""
 import json
 import math
+import re
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -11,7 +15,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.frontend import DenseOdometry, OdometryConfig
-from vigs_core.io import write_euroc_camera, write_euroc_groundtruth
+from vigs_core.io import read_tum, write_euroc_camera, write_euroc_groundtruth
 from vigs_core.io.calibration import CameraCalibration, write_camera_yaml
 from vigs_core.sim.render import Renderer
 from vigs_core.sim.scene import build_room_scene
@@ -19,6 +23,8 @@ from vigs_core.solver import Intrinsics
 from vigs_core.system import PipelineConfig, run_pipeline
 from vigs_core.system.pipeline import poses_to_trajectory
 from vigs_cli.main import main as vigs_main
+
+ROOT = Path(__file__).resolve().parent.parent
 
 torch.set_num_threads(1)
 cv2.setNumThreads(1)
@@ -197,3 +203,31 @@ def test_load_frames_reads_a_whole_input_at_the_processing_size(sequence, tmp_pa
     np.testing.assert_array_equal(f.t_ns, t_ns[:21])
     np.testing.assert_allclose(f.T_WB, T_WC[:21] @ np.linalg.inv(T_BS), atol=1e-9)
     assert (f.camera.width, f.camera.height) == (W // 2, H // 2)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum):
+    """Ctrl-C or SIGTERM mid-run (loop closure in its child process): the run stops at a frame boundary, writes
+    trajectory, report (marked interrupted) and exits 128 + the signal; its loop-closure child is gone."""
+    import psutil
+
+    from ros_bags import SAMPLE_BAG
+
+    cmd = [sys.executable, "-c", "import signal, sys; from vigs_cli.main import main; "
+           "signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit(main())",
+           "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
+    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n    mapping: {enabled: false}\n")
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    seen = ""
+    while not re.search(r"\b(\d{3})/441", seen):   # the progress bar passed 100 frames
+        chunk = proc.stderr.read(64)
+        assert chunk, f"vigs run ended before 100 frames: {seen[-2000:]}"
+        seen += chunk
+    children = psutil.Process(proc.pid).children(recursive=True)
+    proc.send_signal(signum)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signum, seen[-1000:] + err[-3000:]
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["interrupted"] == signal.Signals(signum).name and 100 <= report["frames"] < 441
+    assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 0
+    assert children and not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in children)

@@ -329,13 +329,16 @@ class FrontendNode(VigsNode):
 
     # ------------------------------------------------------------------ tracking thread
     def work(self) -> None:
-        """The tracking thread's loop: wait for input, then :meth:`step` (module docstring)."""
-        while not self.stop.is_set():
+        """The tracking thread's loop: wait for input, then :meth:`step` (module docstring); it ends with the
+        node's context (a signal shuts it down) or :meth:`stop_tracking`."""
+        while not self.stop.is_set() and self.context.ok():
             self.wake.wait(0.1)
             self.wake.clear()
             try:
                 self.step()
             except Exception:   # a bug outside the core's per-frame guard: report it, keep the node alive
+                if not self.context.ok():   # shut down (Ctrl-C) while publishing: close() saves the outputs
+                    return
                 self.status.set_error("tracking_thread", "the tracking thread failed: " + traceback.format_exc(limit=1))
                 self.get_logger().error("tracking thread failure:\n" + traceback.format_exc())
 

@@ -126,14 +126,17 @@ class OnlineMapping:
             if k in self._sent:
                 self._sent[k] = self._current(k)
 
-    def finish(self) -> None:
-        """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain."""
-        self._send_pose_updates()
-        for k in sorted(self.odometry.keyframes):
-            if k not in self._sent:
-                self._send_keyframe(k)
+    def finish(self, drain: bool = True) -> None:
+        """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain
+        (``drain`` False, an interrupted run: stop it after the event it is applying)."""
+        if drain:
+            self._send_pose_updates()
+            for k in sorted(self.odometry.keyframes):
+                if k not in self._sent:
+                    self._send_keyframe(k)
         t0 = time.perf_counter()
-        self.mapper.wait_idle()
+        if drain:
+            self.mapper.wait_idle()
         self.mapper.stop()
         self.wait_seconds = time.perf_counter() - t0
 

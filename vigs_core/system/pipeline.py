@@ -30,12 +30,18 @@ rejected, PGBA runs and seconds). With ``mapping.enabled`` the Gaussian mapper
 (:class:`vigs_core.system.mapping.OnlineMapping`) maps the keyframes on a worker thread: ``map.ply`` (3DGS
 layout) and ``map.json`` (keyframes) are written and report.json adds ``mapping`` (Gaussians, keyframes mapped,
 seconds, PSNR/SSIM on non-keyframe frames at the final poses, before and after the optional final refinement).
+
+Ctrl-C (SIGINT) or SIGTERM stops the run at the next frame boundary; everything computed so far is written (the
+map without waiting for the mapper's backlog and without render quality) and ``report.json`` says
+``interrupted`` (the signal's name); a second signal interrupts at once.
 """
 from __future__ import annotations
 
 import json
 import resource
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,6 +171,29 @@ def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np
     return {**result, "frame": "body" if T_BX is None else "camera"}
 
 
+class StopRequest:
+    """SIGINT / SIGTERM during the run loop: the loop stops at the next frame boundary (``requested`` names the
+    signal) and the run writes what it computed; a second signal interrupts at once. Installed only when called
+    from the main thread (signal handlers can be set nowhere else)."""
+
+    def __init__(self) -> None:
+        self.requested: str | None = None
+        self._previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, frame) -> None:
+        if self.requested is not None:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
                  progress: bool = True, sequence: InputSequence | None = None,
                  only_ns: set[int] | None = None) -> dict:
@@ -203,8 +232,9 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else stream.prepare(raw),
                              count=total * cfg.frame_stride)
     t_loop = time.perf_counter()
+    stop = StopRequest()
     try:
-        while True:
+        while not stop.requested:
             t0 = time.perf_counter()
             try:
                 t_ns, image = next(reader)
@@ -228,9 +258,12 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                 if n % 20 == 0:
                     bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
     finally:
+        stop.restore()
         reader.close()
     if bar is not None:
         bar.close()
+    if stop.requested:
+        print(f"vigs run: {stop.requested} after {n} frames: writing what was computed", file=sys.stderr)
     if loop is not None:
         loop.finish()
     loop_s = time.perf_counter() - t_loop
@@ -251,12 +284,14 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "peak_rss_mb_worker_process": round(peak_rss_mb(resource.RUSAGE_CHILDREN), 1),
+        "interrupted": stop.requested,
     }
     if loop is not None:
         report["loop"] = loop.report()
     if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
-        mapping.finish()
-        report["mapping"] = mapping.evaluate(t_ns, T_WC)
+        mapping.finish(drain=not stop.requested)
+        report["mapping"] = mapping.evaluate(t_ns, T_WC) if not stop.requested else {
+            "gaussians": len(mapping.mapper.map), "interrupted": True}
     metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
     if seq.groundtruth is not None and len(t_ns):
         frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
