@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse, so3_exp
+from vigs_core.imu.analytic_motion import AnalyticMotion
 from vigs_core.imu.preintegration import preintegrate
 from vigs_core.solver import BAConfig, bundle_adjust, reproject
 from vigs_core.vio.config import ABLATIONS, VioConfig
@@ -32,12 +33,14 @@ def _visual_frame(sc, factor, rot_noise_deg=0.0, seed=0):
 
 def test_staged_initialisation_recovers_scale_and_gravity():
     for seed, factor in ((0, 0.37), (3, 2.5)):
-        sc = make_scenario(n=20, spacing_s=0.3, seed=seed, bias_gyro=(0.002, -0.02, 0.01),
+        sc = make_scenario(n=21, spacing_s=0.3, seed=seed, bias_gyro=(0.002, -0.02, 0.01),
                            bias_acc=(0.05, -0.1, 0.08), imu_noise=True)
         T_cw = _visual_frame(sc, factor, rot_noise_deg=0.2, seed=seed)
         init = StagedInitializer(VioConfig(), sc.imu, NOISE, T_CB)
-        outcomes = [init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) for K in range(3, 21)]
+        outcomes = [init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) for K in range(3, 22)]
+        # the first solution (20 keyframes) waits for the next one to agree with it
         assert all(o is None for o in outcomes[:-1]) and init.stage == Stage.VISUAL_INERTIAL
+        assert init.attempts[0]["refused"].startswith("awaiting") and "refused" not in init.attempts[1]
         out = outcomes[-1]
         assert abs(out.alignment.scale * factor - 1.0) < 0.02
         # gravity: in the aligned world, camera 0 sees "down" where the true camera 0 does
@@ -161,33 +164,116 @@ def test_estimator_predicts_only_once_metric():
 
 
 
-def test_scale_refinement_rescales_a_metric_map_once():
-    """A metric, gravity-aligned map whose scale is 4% off (as a window's scale when the depth starts being held):
-    ``metric_hold_delay_s`` after the alignment the inertial-only refit over the keyframes since then returns the
-    correcting alignment and the velocities in the corrected world; it runs once."""
-    sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
-                       imu_noise=True)
+def _metric_estimator(sc, factor: float, n: int = 20, **config) -> tuple[VisualInertialEstimator, torch.Tensor]:
+    """An estimator with the first ``n`` keyframes whose map is metric since keyframe 5 but scaled by ``factor``
+    (and the world->camera poses of all)."""
     T_wc = sc.T_wc.clone()
-    T_wc[:, :3, 3] *= 1.04
-    T_cw = se3_inverse(T_wc)
-    est = VisualInertialEstimator(VioConfig(scale_refinement=True, metric_hold_delay_s=2.0), sc.imu, NOISE, T_BC)
-    for k in range(20):
+    T_wc[:, :3, 3] *= factor
+    est = VisualInertialEstimator(VioConfig(metric_hold_delay_s=2.0, **config), sc.imu, NOISE, T_BC)
+    for k in range(n):
         est.add_keyframe(k, int(sc.stamps_ns[k]))
-    assert not est.refinement_due(int(sc.stamps_ns[-1]))           # not metric yet
+    assert not est.scale_check_due(int(sc.stamps_ns[n - 1]))        # not metric yet
     est.initializer.stage = Stage.VISUAL_INERTIAL                   # as after an alignment at keyframe 5
     est.metric_since_ns = int(sc.stamps_ns[5])
-    assert not est.refinement_due(int(sc.stamps_ns[8]))             # 0.9 s after the alignment
-    assert est.refinement_due(int(sc.stamps_ns[-1]))
-    al = est.refine_scale(list(range(20)), sc.stamps_ns, T_cw)
+    return est, se3_inverse(T_wc)
+
+
+def test_scale_check_refines_a_scale_a_few_percent_off_and_fails_one_that_did_not_hold():
+    """``metric_hold_delay_s`` after the alignment the inertial-only refit over the keyframes since then checks the
+    scale, once: 4% off, it passes (with ``scale_refinement`` it returns the correcting alignment and the
+    velocities in the corrected world); 30% off, the alignment did not hold: a failure, back to vision-only."""
+    sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
+                       imu_noise=True)
+    ids = list(range(20))
+    est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=True)
+    assert not est.scale_check_due(int(sc.stamps_ns[8]))           # 0.9 s after the alignment
+    assert est.scale_check_due(int(sc.stamps_ns[-1]))
+    al = est.check_scale(ids, sc.stamps_ns, T_cw)
     assert al is not None and abs(al.scale * 1.04 - 1.0) < 0.01
     assert math.degrees(math.acos(min(1.0, float(al.R[2, 2])))) < 1.0   # gravity stays along -z
     assert (est.states[12].velocity - sc.velocities[12]).norm() < 0.05
-    assert est.scale_history[-1]["stage"] == "refinement"
-    assert not est.refinement_due(int(sc.stamps_ns[-1]))            # once
-    off = VisualInertialEstimator(VioConfig(metric_hold_delay_s=2.0), sc.imu, NOISE, T_BC)   # off by default
-    off.initializer.stage = Stage.VISUAL_INERTIAL
-    off.metric_since_ns = int(sc.stamps_ns[5])
-    assert not off.refinement_due(int(sc.stamps_ns[-1]))
+    assert est.scale_history[-1]["stage"] == "scale_check" and est.metric and not est.failures
+    assert not est.scale_check_due(int(sc.stamps_ns[-1]))            # once
+    est, T_cw = _metric_estimator(sc, 1.04)                         # refinement off (default): checked only
+    assert est.check_scale(ids, sc.stamps_ns, T_cw) is None and est.metric and est.scale_checked
+    est, T_cw = _metric_estimator(sc, 1.3)
+    assert est.check_scale(ids, sc.stamps_ns, T_cw) is None
+    assert not est.metric and est.stage == Stage.VISION_ONLY and est.initializer.first == 20
+    assert "scale did not hold" in est.failures[0]["reason"]
+    assert (est.states[12].velocity == 0).all() and est.alignment is None
+
+
+def test_a_divergent_metric_state_is_a_failure_and_initialisation_restarts_after_it():
+    """Once metric, an implausible speed or bias, or a keyframe position jump, is a failure; the estimator then
+    forgets its inertial state and the inertial-only stage uses only keyframes from the failure on."""
+    sc = make_scenario(n=45, spacing_s=0.3, seed=3, duration_s=16.0, bias_gyro=(0.002, -0.02, 0.01),
+                       bias_acc=(0.05, -0.1, 0.08), imu_noise=True)
+    T_cw = se3_inverse(sc.T_wc)
+    est, _ = _metric_estimator(sc, 1.0)
+    ids, stamps = list(range(20)), sc.stamps_ns[:20]
+    for k in ids:
+        est.states[k].velocity = sc.velocities[k].clone()
+    assert est.health(ids, stamps, T_cw[:20]) is None
+    est.states[19].velocity = torch.tensor([40.0, 0.0, 0.0], **F64)
+    assert "implausible state: speed 40" in est.health(ids, stamps, T_cw[:20])
+    est.states[19].velocity = sc.velocities[19].clone()
+    est.states[19].bias = torch.tensor([0, 0, 0, 0, 0, 2.5], **F64)
+    assert "accelerometer bias 2.5" in est.health(ids, stamps, T_cw[:20])
+    est.states[19].bias = torch.zeros(6, **F64)
+    jumped = T_cw[:20].clone()
+    jumped[-1] = T_cw[19] @ torch.linalg.inv(torch.tensor([[1, 0, 0, 50.0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                           [0, 0, 0, 1]], **F64))
+    reason = est.health(ids, stamps, jumped)
+    assert reason.startswith("pose jump: 49.9 m in 0.300 s")
+    est.fail(int(stamps[-1]), reason)
+    assert not est.metric and est.failures[0]["reason"] == reason
+    init = est.initializer
+    for K in range(21, 40):   # keyframes 20.. only: 20 of them are needed before the stage runs again
+        est.add_keyframe(K - 1, int(sc.stamps_ns[K - 1]))
+        assert est.on_keyframe(list(range(K)), sc.stamps_ns[:K], T_cw[:K]) is None
+    assert len(init.attempts) == 0
+    for K in range(40, 46):
+        est.add_keyframe(K - 1, int(sc.stamps_ns[K - 1]))
+        if est.on_keyframe(list(range(K)), sc.stamps_ns[:K], T_cw[:K]) is not None:
+            break
+    assert est.metric and est.reinitialisations == 1 and init.attempts[0]["keyframes"] == 40
+
+
+def test_initialisation_refuses_implausible_and_degenerate_solutions():
+    """Constructed degenerate initialisations are refused (a "not yet"), never accepted: an accelerometer reading
+    1 m/s^2 off is an implausible bias against a 0.5 m/s^2 limit, 3 m/s^2 off an inconsistent fit; constant velocity
+    along a line leaves the scale unobservable; keyframe poses whose scale jumps between windows never agree."""
+    sc = make_scenario(n=24, spacing_s=0.3, seed=0, imu_noise=True)
+    T_cw = _visual_frame(sc, 0.5)
+    for offset, config, refusal in ((1.0, VioConfig(max_bias_acc=0.5), "implausible: speed"),
+                                    (3.0, VioConfig(), "not trustworthy")):   # chi2 / dof 7 widens the covariance
+        biased = type(sc.imu)(sc.imu.t_ns, sc.imu.gyro, sc.imu.acc + np.array([0.0, 0.0, offset]))
+        init = StagedInitializer(config, biased, NOISE, T_CB)
+        assert all(init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) is None for K in range(3, 25))
+        assert init.stage == Stage.VISION_ONLY and len(init.attempts) == 5
+        assert all(a["refused"].startswith(refusal) for a in init.attempts), init.attempts
+
+    # 1 m/s along a line (acceleration 1 mm/s^2) while the body turns: the scale trades against the velocity
+    line = AnalyticMotion.default()
+    line.pos_amp, line.pos_freq = np.array([1000.0, 600.0, 0.0]), np.array([1e-3, 1e-3, 1e-3])
+    t_imu = np.arange(0, int(9e9), int(5e6), dtype=np.int64)
+    stamps = np.arange(24, dtype=np.int64) * 300_000_000 + 1_234_567
+    R, p, _ = line.state(stamps * 1e-9)
+    T_wb = torch.eye(4, **F64).repeat(24, 1, 1)
+    T_wb[:, :3, :3], T_wb[:, :3, 3] = R, p
+    T_line = se3_inverse(T_wb @ T_BC)
+    T_line[:, :3, 3] *= 0.5
+    init = StagedInitializer(VioConfig(), line.imu(t_imu), NOISE, T_CB)
+    assert all(init.on_keyframe(stamps[:K], T_line[:K]) is None for K in range(3, 25))
+    assert init.stage == Stage.VISION_ONLY and len(init.attempts) == 5
+    assert all("refused" in a for a in init.attempts), init.attempts
+
+    init = StagedInitializer(VioConfig(), sc.imu, NOISE, T_CB)
+    for K in range(3, 25):   # the map's scale changes by 20% from one keyframe to the next
+        T = _visual_frame(sc, 0.5 * (1.2 if K % 2 else 1.0))
+        assert init.on_keyframe(sc.stamps_ns[:K], T[:K]) is None
+    assert init.stage == Stage.VISION_ONLY
+    assert sum(a["refused"].startswith("disagrees") for a in init.attempts) >= 3
 
 
 def test_keyframes_outside_the_imu_stay_vision_only():

@@ -311,7 +311,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
     report["total_s"] = round(time.perf_counter() - t_start, 3)
     if out_dir is not None:
-        from vigs_core.io import write_tum
+        from vigs_core.io import write_frame_status, write_tum
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -319,6 +319,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         write_tum(out / "trajectory_cam.txt", poses_to_trajectory(t_ns, T_WC))
         write_tum(out / "odometry.txt", poses_to_trajectory(to, T_WB_odo))
         write_tum(out / "keyframes.txt", poses_to_trajectory(tk, T_WB_kf))
+        if isinstance(odo, VisualInertialOdometry):
+            write_frame_status(out / "frame_status.txt", odo.frame_status)
         if velocities is not None:
             np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
                        header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")

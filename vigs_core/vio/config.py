@@ -86,10 +86,10 @@ class VioConfig:
             whatever scale the window has, so the IMU first corrects the inertial-only stage's scale with the
             depth free (first 60 s of hybrid V2_01: 0 s froze a 3.6% scale error, SE(3) ATE 9.0 cm; 10 s: 0.2%,
             4.0 cm; MH_03: 11.8 / 12.9 cm).
-        scale_refinement: at the first keyframe ``metric_hold_delay_s`` after the alignment, re-estimate the
-            gravity direction and scale inertial-only over the keyframes since the alignment (poses fixed, the
-            initialisation's trust limits) and rescale the whole map once (ORB-SLAM3's scale refinement,
-            :meth:`~vigs_core.vio.estimator.VisualInertialEstimator.refine_scale`), so the depth is held at that
+        scale_refinement: rescale the whole map once by the scale check's solution (see ``max_scale_drift``:
+            gravity direction and scale re-estimated inertial-only over the keyframes since the alignment, poses
+            fixed; ORB-SLAM3's scale refinement,
+            :meth:`~vigs_core.vio.estimator.VisualInertialEstimator.check_scale`), so the depth is held at that
             scale rather than at the window's of that moment. Off by default: first 60 s of hybrid MH_03, refined
             scale 0.976 (std 0.9%), SE(3) ATE 12.9 -> 8.3 cm; but V2_01, 0.973 (std 1.1%) on a map whose scale
             was right, 4.0 -> 5.6 cm (the inertial-only scale of a few seconds is only good to a few percent).
@@ -100,6 +100,19 @@ class VioConfig:
             estimate with this standard deviation, m/s (the inertial counterpart of fixing their poses; 0 = off).
         anchor_bias_gyro_std: same for their gyroscope biases, rad/s.
         anchor_bias_acc_std: same for their accelerometer biases, m/s^2.
+        max_speed: a body speed above this (m/s) is implausible: an inertial-only solution with such a keyframe
+            velocity is refused, and a metric keyframe moving this fast is a failure (reset, initialise again).
+        max_bias_gyro: a gyroscope bias norm above this (rad/s) is implausible (refused at initialisation, a
+            failure once metric).
+        max_bias_acc: the same for the accelerometer bias norm (m/s^2).
+        init_agreement_log_scale: an inertial-only solution is accepted only when the attempt at the keyframe
+            before was trustworthy and plausible too and their log-scales differ by less than this (a single
+            well-conditioned solution can still be wrong; two successive windows agreeing rarely are).
+        init_agreement_gravity_deg: the same for the angle between their gravity directions (deg).
+        max_scale_drift: the scale check (at the first keyframe ``metric_hold_delay_s`` after the alignment,
+            retried at later keyframes while its solution is not trustworthy) solves the inertial-only problem
+            again over the keyframes since the alignment; when its ``|log scale|`` exceeds this the alignment did
+            not hold: failure, back to vision-only, initialise again.
         still_max_flow_px: before the front end initialises, a frame whose mean flow from the first frame is
             below this (input pixels) is held at the first frame's pose (see :mod:`vigs_core.vio.odometry`).
     """
@@ -132,6 +145,12 @@ class VioConfig:
     anchor_velocity_std: float = 0.01
     anchor_bias_gyro_std: float = 1e-3
     anchor_bias_acc_std: float = 1e-2
+    max_speed: float = 10.0
+    max_bias_gyro: float = 0.2
+    max_bias_acc: float = 1.0
+    init_agreement_log_scale: float = 0.05
+    init_agreement_gravity_deg: float = 2.0
+    max_scale_drift: float = 0.15
     still_max_flow_px: float = 1.0
 
     def __post_init__(self) -> None:
@@ -140,6 +159,11 @@ class VioConfig:
                              f"{self.inertial_init_keyframes}; expected 3 <= vision_only <= inertial_init")
         if self.keyframe_init_max_cov_trace <= 0 or self.inertial_weight <= 0:
             raise ValueError("VioConfig: keyframe_init_max_cov_trace and inertial_weight must be positive")
+        limits = ("max_speed", "max_bias_gyro", "max_bias_acc", "init_agreement_log_scale",
+                  "init_agreement_gravity_deg", "max_scale_drift")
+        if any(not getattr(self, name) > 0 for name in limits):
+            raise ValueError("VioConfig: " + ", ".join(f"{n} {getattr(self, n)}" for n in limits)
+                             + "; expected all positive")
 
 
 ABLATIONS: dict[str, dict[str, Any]] = {

@@ -15,8 +15,16 @@ end drives it with these calls::
     terms(ids, poses) -> (terms, state) | None  # inertial terms of a BA window (pass to bundle_adjust)
     marginalize(ids, poses, visual)             # the oldest keyframe leaves the window (once metric)
     update(ids, state)                          # store the BA's velocities and biases
+    health(ids, stamps, poses) -> str | None    # once metric, after a keyframe's BA: why the state is divergent
+    fail(t_ns, reason)                          # then: back to vision-only on the current map, initialise again
     on_keyframe(ids, stamps, poses) -> WorldAlignment | None   # after the keyframe's BA; apply it to the map
-    refine_scale(ids, stamps, poses) -> WorldAlignment | None  # once, ``metric_hold_delay_s`` after the alignment
+    check_scale(ids, stamps, poses) -> WorldAlignment | None   # when scale_check_due(): the scale check
+
+Failure detection (after VINS-Mono's and OpenVINS's checks): once metric, a keyframe whose speed or bias norm
+is implausible (``max_speed``, ``max_bias_gyro``, ``max_bias_acc``) or whose position jumped further from the
+previous keyframe's than ``max_speed`` allows, or a scale check whose scale moved more than ``max_scale_drift``,
+is a failure: the estimator forgets its inertial state (velocities, biases, preintegrations, prior) and the
+initialisation starts again on the current map (:meth:`StagedInitializer.restart`); ``failures`` lists them.
 """
 from __future__ import annotations
 
@@ -39,6 +47,7 @@ from vigs_core.vio.keyframe_init import KeyframePrediction, predict_keyframe
 from vigs_core.vio.marginalization import marginalize_keyframe
 
 F64 = torch.float64
+_JUMP_SLACK_M = 0.5   # a keyframe may move this much beyond max_speed * dt (pose noise, camera lever arm)
 
 
 def _bias_stds(gyro: float, acc: float) -> torch.Tensor:
@@ -80,7 +89,9 @@ class VisualInertialEstimator:
         self.scale_history: list[dict] = []
         self.alignment: WorldAlignment | None = None
         self.metric_since_ns: int | None = None   # stamp of the keyframe at which the map became metric
-        self.scale_refined = False
+        self.scale_checked = False
+        self.failures: list[dict] = []
+        self.reinitialisations = 0
         self.imu_predictions = 0
         self.fallbacks = 0
         self._pre: dict[tuple[int, int], Preintegrated] = {}
@@ -279,6 +290,7 @@ class VisualInertialEstimator:
             if bias is not None:
                 self.global_bias = bias.clone()
             self._finish(outcome.alignment, t_ns, len(ids))
+            self.reinitialisations += bool(self.failures)
             return outcome.alignment
         if before == Stage.VISION_ONLY and self.stage == Stage.JOINT_UNALIGNED:
             self._start_joint(ids, stamps_ns, poses)
@@ -297,23 +309,23 @@ class VisualInertialEstimator:
         """True when the map has been metric for ``metric_hold_delay_s`` at ``t_ns``."""
         return self.metric and (int(t_ns) - self.metric_since_ns) * 1e-9 >= self.config.metric_hold_delay_s
 
-    def refinement_due(self, t_ns: int) -> bool:
-        """True when the scale refinement should run at a keyframe at ``t_ns`` (``scale_refinement`` on, metric
-        for ``metric_hold_delay_s``, not yet run)."""
-        c = self.config
-        return c.enabled and c.scale_refinement and not self.scale_refined and self.hold_delay_passed(t_ns)
+    def scale_check_due(self, t_ns: int) -> bool:
+        """True when the scale check should run at a keyframe at ``t_ns``: metric for ``metric_hold_delay_s`` and
+        no trustworthy check yet since the alignment."""
+        return self.config.enabled and not self.scale_checked and self.hold_delay_passed(t_ns)
 
-    def refine_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
-        """Scale refinement (as ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C): the inertial-only problem of
-        the initialisation (:func:`~vigs_core.imu.inertial_init.inertial_only_init`: gravity direction, scale,
-        velocities and biases with the poses fixed) over the keyframes since the map became metric (ids (K,),
-        stamps (K,) ns, world->camera poses (K, 4, 4) of ALL keyframes), i.e. seconds of joint VI-BA poses
-        instead of the vision-only stage's. Runs once; returns the alignment the caller must apply to the whole
-        map (velocities here are already updated), or None when the solution is not trustworthy (limits of the
-        initialisation) or not computable. The biases stay the VI-BA's."""
-        self.scale_refined = True
+    def check_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
+        """The scale check: the inertial-only problem of the initialisation
+        (:func:`~vigs_core.imu.inertial_init.inertial_only_init`: gravity direction, scale, velocities and biases
+        with the poses fixed) over the keyframes since the map became metric (at most ``3 inertial_init_keyframes``
+        of them; ids (K,), stamps (K,) ns, world->camera poses (K, 4, 4) of ALL keyframes), i.e. seconds of joint
+        VI-BA poses instead of the vision-only stage's. An untrustworthy solution is retried at the next keyframe.
+        A trustworthy one whose ``|log scale|`` exceeds ``max_scale_drift`` is a failure (:meth:`fail`). Otherwise,
+        with ``scale_refinement`` (ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C), the alignment the caller must
+        apply to the whole map (velocities here are already updated; the biases stay the VI-BA's), else None."""
+        c = self.config
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-        sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0]
+        sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0][-3 * c.inertial_init_keyframes:]
         if len(sel) < 3 or not self.imu_covers(int(stamps_ns[sel[0]]), int(stamps_ns[sel[-1]])):
             return None
         try:
@@ -321,16 +333,58 @@ class VisualInertialEstimator:
                                      self.T_cb, self.initializer.inertial_config())
         except torch.linalg.LinAlgError:
             return None
-        self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "refinement",
+        self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "scale_check",
                                    "scale": res.scale, "log_scale_std": res.log_scale_std,
                                    "trustworthy": res.trustworthy})
         if not res.trustworthy:
+            return None
+        self.scale_checked = True
+        if abs(res.log_scale) > c.max_scale_drift:
+            since_s = (int(stamps_ns[-1]) - self.metric_since_ns) * 1e-9
+            self.fail(int(stamps_ns[-1]), f"the scale did not hold: the check {since_s:.1f} s after the alignment "
+                                          f"found scale {res.scale:.3f}")
+            return None
+        if not c.scale_refinement:
             return None
         alignment = alignment_from_gravity(res.R_wg, res.log_scale)
         refit = {ids[n]: res.velocities[m] for m, n in enumerate(sel)}
         for k in ids:
             self.states[k].velocity = alignment.velocity(refit.get(k, self.states[k].velocity))
         return alignment
+
+    def health(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> str | None:
+        """Once metric, after the BA of the newest keyframe ``ids[-1]`` (ids, stamps (K,) ns and world->camera
+        poses (K, 4, 4) of all keyframes): why its state is divergent (module docstring), or None."""
+        c = self.config
+        if not (c.enabled and self.metric) or not ids:
+            return None
+        new = self.states[ids[-1]]
+        b = self.bias_of(ids[-1])
+        speed, b_g, b_a = float(new.velocity.norm()), float(b[:3].norm()), float(b[3:].norm())
+        if not (speed <= c.max_speed and b_g <= c.max_bias_gyro and b_a <= c.max_bias_acc):
+            return (f"implausible state: speed {speed:.3g} m/s (max {c.max_speed:g}), gyro bias {b_g:.3g} rad/s "
+                    f"(max {c.max_bias_gyro:g}), accelerometer bias {b_a:.3g} m/s^2 (max {c.max_bias_acc:g})")
+        if len(ids) >= 2:
+            p = se3_inverse(poses[-2:].to(F64))[:, :3, 3]
+            jump, dt = float((p[1] - p[0]).norm()), (int(stamps_ns[-1]) - int(stamps_ns[-2])) * 1e-9
+            if not jump <= c.max_speed * dt + _JUMP_SLACK_M:
+                return f"pose jump: {jump:.3g} m in {dt:.3f} s between keyframes (max speed {c.max_speed:g} m/s)"
+        return None
+
+    def fail(self, t_ns: int, reason: str) -> None:
+        """A failure at ``t_ns``: forget the inertial state and initialise again on the current map."""
+        self.failures.append({"t_ns": int(t_ns), "reason": reason})
+        self.initializer.restart(len(self.states))
+        self.alignment = None
+        self.metric_since_ns = None
+        self.scale_checked = False
+        self.marginal = None
+        self.R_wg, self.log_scale = torch.eye(3, dtype=F64), 0.0
+        self.global_bias = torch.zeros(6, dtype=F64)
+        for st in self.states.values():
+            st.velocity, st.bias = torch.zeros(3, dtype=F64), torch.zeros(6, dtype=F64)
+        self._pre.clear()
+        self._last_predicted = None
 
     def _start_joint(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> None:
         """Without staging: gravity from the accelerometer, scale 1, velocities by finite differences."""
@@ -371,4 +425,6 @@ class VisualInertialEstimator:
             "imu_predictions": self.imu_predictions,
             "imu_prediction_fallbacks": self.fallbacks,
             "marginalized_keyframes": self.marginalized,
+            "failures": self.failures,
+            "reinitialisations": self.reinitialisations,
         }

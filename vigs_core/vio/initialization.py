@@ -7,10 +7,17 @@ parameters, paper values 10 and 20):
    poses in the first camera's frame (the first ``vision_only_keyframes`` form the visual initialisation).
 2. At ``K = inertial_init_keyframes`` the inertial-only stage
    (:func:`vigs_core.imu.inertial_init.inertial_only_init`): with the poses fixed, solve the gravity direction
-   ``R_wg``, the per-keyframe velocities, the bias and the log-scale ``sigma``. An untrustworthy solution
-   (standard deviations above the configured limits) is retried at the next keyframe.
+   ``R_wg``, the per-keyframe velocities, the bias and the log-scale ``sigma``. The solution is refused, and
+   the stage retried at the next keyframe, unless it is trustworthy (standard deviations under the configured
+   limits), physically plausible (finite; keyframe speeds and bias norms under ``max_speed``,
+   ``max_bias_gyro``, ``max_bias_acc``) and agrees with the previous keyframe's attempt (log-scale and gravity
+   direction within ``init_agreement_log_scale`` and ``init_agreement_gravity_deg``). A singular problem is a
+   "not yet" like any other refusal: it also breaks the agreement chain.
 3. ``VISUAL_INERTIAL``: the map is rescaled and gravity-aligned (:class:`WorldAlignment`) and every later BA is
    the joint VI-BA with metric scale and gravity fixed along ``-z``.
+
+After a failure (:meth:`StagedInitializer.restart`) the machine is back in stage 1 and the inertial-only stage
+uses only keyframes from the restart on, once there are ``inertial_init_keyframes`` of them.
 
 Without staging (the Table 6 ablation) ``JOINT_UNALIGNED`` replaces stages 1-2 from ``vision_only_keyframes``
 on: joint VI-BA with gravity direction and log-scale as free states, started from the mean accelerometer
@@ -128,7 +135,9 @@ class StagedInitializer:
         self.T_cb = T_cb.to(torch.float64)
         self.stage = Stage.VISION_ONLY
         self.joint_start = 0      # keyframe count at which joint VI-BA without staging began
+        self.first = 0            # keyframe count at the last restart: older keyframes are not used
         self.attempts: list[dict] = []
+        self._candidate: InertialInit | None = None   # the previous attempt, when trustworthy and plausible
 
     @property
     def imu(self) -> ImuSamples:
@@ -162,22 +171,28 @@ class StagedInitializer:
                 self.stage = Stage.JOINT_UNALIGNED
                 self.joint_start = K
             return None
-        if K < c.inertial_init_keyframes:
+        if K - self.first < c.inertial_init_keyframes:
             return None
         # the most recent keyframes, at most twice the stage's count (older poses drifted and are frozen)
-        keep = slice(max(0, K - 2 * c.inertial_init_keyframes), K)
+        keep = slice(max(self.first, K - 2 * c.inertial_init_keyframes), K)
         stamps, poses = np.asarray(stamps_ns[keep], dtype=np.int64), T_cw[keep].to(torch.float64)
         if not self._covers(stamps):
+            self._candidate = None
             return None   # the IMU does not cover these keyframes: stay vision-only
+        previous, self._candidate = self._candidate, None
         try:
             result = inertial_only_init(se3_inverse(poses), stamps, self.imu, self.noise, self.T_cb,
                                         self.inertial_config())
-        except torch.linalg.LinAlgError as err:   # degenerate motion (e.g. no acceleration): retry later
-            self.attempts.append({"keyframes": K, "error": str(err).splitlines()[0]})
+        except torch.linalg.LinAlgError as err:   # degenerate motion (e.g. no acceleration): not yet
+            self.attempts.append({"keyframes": K, "refused": "singular: " + str(err).splitlines()[0]})
             return None
-        self.attempts.append({"keyframes": K, "scale": result.scale, "log_scale_std": result.log_scale_std,
-                              "gravity_std_deg": result.gravity_std_deg, "trustworthy": result.trustworthy})
-        if not result.trustworthy:
+        attempt = {"keyframes": K, "scale": result.scale, "log_scale_std": result.log_scale_std,
+                   "gravity_std_deg": result.gravity_std_deg, "chi2_per_dof": result.chi2_per_dof,
+                   "trustworthy": result.trustworthy}
+        self.attempts.append(attempt)
+        refusal = self._refusal(result, previous)
+        if refusal is not None:
+            attempt["refused"] = refusal
             return None
         alignment = alignment_from_gravity(result.R_wg, result.log_scale)
         vel = torch.zeros(K, 3, dtype=torch.float64)
@@ -189,6 +204,41 @@ class StagedInitializer:
         bias = torch.cat((result.bias_gyro, result.bias_acc))
         self.stage = Stage.VISUAL_INERTIAL
         return InitOutcome(alignment, vel, bias, result)
+
+    def _refusal(self, result: InertialInit, previous: InertialInit | None) -> str | None:
+        """Why an inertial-only solution is not accepted (module docstring), or None; a trustworthy and
+        plausible solution becomes the candidate the next attempt must agree with."""
+        c = self.config
+        if not result.trustworthy:
+            return "not trustworthy"
+        values = torch.cat((result.velocities.reshape(-1), result.keyframe_biases.reshape(-1),
+                            torch.tensor([result.log_scale], dtype=torch.float64)))
+        if not bool(torch.isfinite(values).all()):
+            return "not finite"
+        speed = float(result.velocities.norm(dim=-1).max())
+        b_g = float(result.keyframe_biases[:, :3].norm(dim=-1).max())
+        b_a = float(result.keyframe_biases[:, 3:].norm(dim=-1).max())
+        if speed > c.max_speed or b_g > c.max_bias_gyro or b_a > c.max_bias_acc:
+            return (f"implausible: speed {speed:.3g} m/s (max {c.max_speed:g}), gyro bias {b_g:.3g} rad/s "
+                    f"(max {c.max_bias_gyro:g}), accelerometer bias {b_a:.3g} m/s^2 (max {c.max_bias_acc:g})")
+        self._candidate = result
+        if previous is None:
+            return "awaiting a second solution to agree with"
+        d_scale = abs(result.log_scale - previous.log_scale)
+        cos = torch.dot(result.gravity_world, previous.gravity_world) / (
+            result.gravity_world.norm() * previous.gravity_world.norm())
+        d_gravity = float(np.degrees(np.arccos(float(cos.clamp(-1.0, 1.0)))))
+        if d_scale > c.init_agreement_log_scale or d_gravity > c.init_agreement_gravity_deg:
+            return (f"disagrees with the previous attempt: log-scale by {d_scale:.3f} (max "
+                    f"{c.init_agreement_log_scale:g}), gravity by {d_gravity:.2f} deg (max "
+                    f"{c.init_agreement_gravity_deg:g})")
+        return None
+
+    def restart(self, K: int) -> None:
+        """Back to the vision-only stage after a failure, with ``K`` keyframes so far (module docstring)."""
+        self.stage = Stage.VISION_ONLY
+        self.first = K
+        self._candidate = None
 
     def finish_joint(self, K: int, R_wg: torch.Tensor, log_scale: float) -> WorldAlignment | None:
         """Without staging: at ``inertial_init_keyframes`` keyframes (and after at least one joint BA), the

@@ -21,7 +21,15 @@
   (``metric_hold_fixed_disparity``) their disparities, so the depth map carries the scale between windows;
 * optionally (``scale_refinement``), ``metric_hold_delay_s`` after the alignment, when the depth starts being
   held, the scale and gravity direction are re-estimated once inertial-only over the keyframes since the
-  alignment and the whole map is rescaled (:meth:`VisualInertialEstimator.refine_scale`);
+  alignment and the whole map is rescaled (:meth:`VisualInertialEstimator.check_scale`);
+* once metric, every keyframe's state is checked after its BA and ``metric_hold_delay_s`` after the alignment the
+  scale is checked (:class:`~vigs_core.vio.estimator.VisualInertialEstimator` ``health``, ``check_scale``); a
+  failure sends the estimator back to the vision-only stage on the current map and it initialises again;
+* every processed frame gets a status (:data:`FRAME_STATUSES`, :attr:`VisualInertialOdometry.frame_status`):
+  ``initialising`` before the first alignment, ``tracking`` once metric, ``lost`` from a failure until the
+  estimator is metric again, ``reinitialised`` after that. A failure also marks ``lost`` the frames it shows were
+  wrong: those after the previous keyframe (a divergent state), or all since the alignment (a scale that did not
+  hold). The status is the metric claim: ``tracking`` and ``reinitialised`` frames are metric;
 * alternatively (``marginalize``), a keyframe leaving the window once metric is marginalised into a Gaussian
   prior on the remaining keyframes' poses, velocities and biases (:mod:`vigs_core.vio.marginalization`) and BA
   holds no keyframe fixed;
@@ -58,6 +66,10 @@ from vigs_core.vio.initialization import WorldAlignment
 from vigs_core.vio.keyframe_init import KeyframePrediction
 
 
+FRAME_STATUSES = ("initialising", "tracking", "lost", "reinitialised")
+METRIC_STATUSES = ("tracking", "reinitialised")
+
+
 class VisualInertialOdometry(DenseOdometry):
     """Dense monocular odometry with tightly coupled IMU fusion (module docstring).
 
@@ -81,6 +93,7 @@ class VisualInertialOdometry(DenseOdometry):
         self._prediction: tuple[int, KeyframePrediction] | None = None   # (frame stamp, IMU prediction)
         self._held: list[int] = []                                          # stamps held still before init
         self._anchored: set[int] = set()                                    # fixed keyframes of the current BA
+        self.frame_status: dict[int, str] = {}                              # stamp (ns) -> status, every frame
 
     # ------------------------------------------------------------------ hooks of DenseOdometry
     def _new_keyframe(self, frame_idx: int, image: np.ndarray, pose: torch.Tensor, disp: torch.Tensor) -> Keyframe:
@@ -196,9 +209,15 @@ class VisualInertialOdometry(DenseOdometry):
         stamps = np.array([self.keyframes[k].t_ns for k in ids], dtype=np.int64)
         poses = torch.stack([self.keyframes[k].pose for k in ids])
         t0 = self._tic()
+        reason = self.vio.health(ids, stamps, poses)
+        if reason is not None:   # the frames since the previous keyframe were tracked with the divergent state
+            self._fail(int(stamps[-1]), reason, int(stamps[-2]))
         alignment = self.vio.on_keyframe(ids, stamps, poses)
-        if alignment is None and self.vio.refinement_due(int(stamps[-1])):
-            refined = self.vio.refine_scale(ids, stamps, poses)
+        if alignment is None and self.vio.scale_check_due(int(stamps[-1])):
+            since = self.vio.metric_since_ns
+            refined = self.vio.check_scale(ids, stamps, poses)
+            if not self.vio.metric:   # the scale did not hold since the alignment
+                self._mark_lost(since)
             if refined is not None:
                 self._apply_alignment(refined)
             self._toc("vio_init", t0)
@@ -207,6 +226,23 @@ class VisualInertialOdometry(DenseOdometry):
         if alignment is not None:
             self._apply_alignment(alignment)
             self._ba(self.config.ba.iterations)
+
+    def _fail(self, t_ns: int, reason: str, wrong_after_ns: int) -> None:
+        """A failure detected at the keyframe at ``t_ns``: the estimator initialises again; the frames after
+        ``wrong_after_ns`` are marked lost."""
+        self.vio.fail(t_ns, reason)
+        self._mark_lost(wrong_after_ns)
+
+    def _mark_lost(self, after_ns: int) -> None:
+        for t in [t for t, status in self.frame_status.items() if t > after_ns and status in METRIC_STATUSES]:
+            self.frame_status[t] = "lost"
+
+    @property
+    def status(self) -> str:
+        """The estimator's status now (:data:`FRAME_STATUSES`), as the next frame would get it."""
+        if self.vio.metric:
+            return "reinitialised" if self.vio.failures else "tracking"
+        return "lost" if self.vio.failures else "initialising"
 
     def _apply_alignment(self, al: WorldAlignment) -> None:
         """Re-express the whole map in the metric gravity-aligned world (keyframes, disparities, frames)."""
@@ -227,6 +263,7 @@ class VisualInertialOdometry(DenseOdometry):
             self._held.append(int(t_ns))
             pose = torch.eye(4, dtype=torch.float64)
             self._send_pose(pose)
+        self.frame_status[int(t_ns)] = self.status
         return pose
 
     def _still(self) -> bool:
@@ -296,4 +333,7 @@ class VisualInertialOdometry(DenseOdometry):
     def report(self) -> dict:
         """The estimator's report (stage, scale history, biases, prediction counts) and the number of held
         still-start frames, for report.json."""
-        return {**self.vio.report(), "held_still_frames": int(len(self.held_frames()))}
+        counts = {status: 0 for status in FRAME_STATUSES}
+        for status in self.frame_status.values():
+            counts[status] += 1
+        return {**self.vio.report(), "held_still_frames": int(len(self.held_frames())), "frame_status": counts}
