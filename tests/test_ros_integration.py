@@ -35,6 +35,7 @@ from ros_bags import SAMPLE_BAG as BAG, SAMPLE_GT as GT, write_prefix
 from ros_helpers import DOMAIN_ID, isolated_env
 
 from msg_adapters.odometry import odometry_to_pose
+from vigs_core.io import read_frame_status
 from msg_adapters.tf import tf_message_to_transforms
 from vigs_core.eval import evaluate_trajectory
 from vigs_core.io import read_tum
@@ -183,6 +184,21 @@ def test_rep105_odom_continuous_across_imu_init(graph):
     before, after = T_map_odom[:k], T_map_odom[k:]
     np.testing.assert_allclose(before, np.broadcast_to(np.eye(4), before.shape), atol=1e-12)
     np.testing.assert_allclose(after, np.broadcast_to(after[0], after.shape), atol=1e-9)  # no loop closure here
+
+
+def test_odometry_covariance_and_frame_status_follow_the_metric_claim(graph):
+    """/odometry says "do not fuse" (odometry_unknown_std) until the IMU initialises and the nominal covariance
+    after; frame_status.txt gives every tracked frame its status: initialising, then tracking (no failure)."""
+    out, odometry, _, _ = graph
+    init_ns = int(round(json.loads((out / "frontend_report.json").read_text())["inertial_initialized_at_s"] * 1e9))
+    status = read_frame_status(out / "frame_status.txt")
+    assert len(status) == json.loads((out / "frontend_report.json").read_text())["frames_tracked"]
+    assert [s for t, s in sorted(status.items()) if t <= init_ns] == ["initialising"] * sum(t <= init_ns for t in status)
+    assert {s for t, s in status.items() if t > init_ns} == {"tracking"}
+    for o in odometry:   # the initialisation frame is published before the alignment: not yet metric
+        std = np.sqrt(np.diag(o["pose_covariance"]))
+        expected = [1000.0] * 6 if o["t_ns"] <= init_ns else [0.05] * 3 + [0.01] * 3
+        np.testing.assert_allclose(std, expected, rtol=1e-9, err_msg=str(o["t_ns"]))
 
 
 def test_recorded_trajectory_matches_groundtruth_after_imu_init(graph):

@@ -56,6 +56,11 @@ class StatusReporter:
             self.node.get_logger().error(text)
         self._errors[key] = text
 
+    @property
+    def errors(self) -> dict[str, str]:
+        """The active errors by kind."""
+        return dict(self._errors)
+
     def clear_error(self, key: str) -> None:
         self._errors.pop(key, None)
 

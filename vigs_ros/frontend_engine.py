@@ -45,7 +45,9 @@ class FrameOutput:
     since they were last published;
     ``realigned``: the world was re-expressed (IMU initialisation); ``inertial_initialized``: the world is
     metric and gravity-aligned; ``rotation_error``: the largest ``max|R^T R - I|`` of the core's poses before
-    projection onto SO(3) (a core that loses orthonormality is reported by the node, not hidden)."""
+    projection onto SO(3) (a core that loses orthonormality is reported by the node, not hidden); ``status``: the
+    estimator's status after the frame (:data:`vigs_core.vio.odometry.FRAME_STATUSES`, ``vision_only`` without
+    the IMU); ``failure``: the reason of a failure the estimator detected at this frame, else None."""
 
     t_ns: int
     T_wc: np.ndarray | None
@@ -55,6 +57,8 @@ class FrameOutput:
     realigned: bool = False
     inertial_initialized: bool = False
     rotation_error: float = 0.0
+    status: str = "initialising"
+    failure: str | None = None
 
 
 class FrontendEngine:
@@ -96,14 +100,27 @@ class FrontendEngine:
         grey = self.stream.prepare(to_mono8(image, encoding))
         out = FrameOutput(int(t_ns), None)
         notify = None if on_pose is None else (lambda T_cw: on_pose(self._rigid_inverse(T_cw.numpy(), out)))
+        failures = self._failures()
         T_cw = self.stream.add_prepared(int(t_ns), grey, notify)
         if T_cw is not None:
             out.T_wc = self._rigid_inverse(T_cw.numpy(), out)
+        out.status = self.status
+        if len(self._failures()) > len(failures):
+            out.failure = self._failures()[-1]["reason"]
         metric = self.stream.metric
         out.realigned, out.inertial_initialized = metric and not self._metric, metric
         self._metric = metric
         self.report_keyframes(out, metric)
         return out
+
+    @property
+    def status(self) -> str:
+        """The estimator's status now (:attr:`FrameOutput.status`)."""
+        return getattr(self.odometry, "status", "vision_only")
+
+    def _failures(self) -> list[dict]:
+        vio = getattr(self.odometry, "vio", None)
+        return [] if vio is None else vio.failures
 
     def report_keyframes(self, out: FrameOutput, metric: bool) -> None:
         """Fill ``out.new_keyframes`` (with their states) and ``out.updated_keyframes`` from the core's

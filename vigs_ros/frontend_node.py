@@ -36,7 +36,9 @@ No queue grows without bound: images wait at most ``image_queue_depth`` deep for
 * in ``pose_update_topic`` (vigs_msgs/KeyframePoseUpdate): the loop detector's corrections (new poses and
   depth scales), applied to the odometry as the in-process loop closure does
   (:meth:`FrontendEngine.apply_corrections`); the map frame jumps, ``odom`` stays continuous (REP-105).
-* out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105);
+* out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105), with the
+  pose covariance of the estimator's status when the pose is published: ``odometry_position_std`` /
+  ``odometry_rotation_std`` while metric, ``odometry_unknown_std`` (do not fuse) while initialising or lost;
   ``path_topic`` (nav_msgs/Path, transient-local) of the frame poses in ``map_frame`` (re-expressed as a whole
   when the map frame jumps);
   ``/tf``: ``map_frame -> odom_frame -> base_frame``; ``/tf_static``: ``base_frame -> camera_frame``
@@ -45,7 +47,8 @@ No queue grows without bound: images wait at most ``image_queue_depth`` deep for
   ``keyframe_event_topic`` / ``state_topic`` (vigs_msgs/NavState) for the IMU node;
   ``keyframe_update_topic`` (vigs_msgs/KeyframePoseUpdate) when BA moves earlier keyframes;
   ``frame_done_topic`` (std_msgs/Header, one per consumed frame: replay ``--fast`` paces on it);
-  ``status_topic`` (diagnostics).
+  ``status_topic`` (diagnostics; ``estimator`` is the estimator's status, an error while it is lost after a
+  detected failure, naming the failure, until it is metric again).
 
 Outputs at shutdown (``output_dir``; empty: none), as ``vigs run`` writes them: ``trajectory.txt`` (TUM, body
 pose ``T_WB = T_WC T_body_camera^-1`` of every posed frame relative to the final keyframe poses, i.e. after
@@ -53,7 +56,8 @@ BA, IMU initialisation and loop corrections), ``odometry.txt`` (each frame's pos
 re-expressed in the final world at IMU initialisation, like ``vigs run``'s), ``keyframes.txt`` (final
 keyframe body poses) and ``frontend_report.json`` (frames received / tracked / posed / still pending,
 keyframes, the IMU initialisation's stamp, the node's counters, latency from image arrival to odometry
-publish p50 / p95 / max), ``frames_processed.txt`` (stamps, ns, of the tracked frames).
+publish p50 / p95 / max, the estimator's failures), ``frames_processed.txt`` (stamps, ns, of the tracked frames),
+``frame_status.txt`` (each tracked frame's status: :mod:`vigs_core.io.frame_status`).
 """
 from __future__ import annotations
 
@@ -91,6 +95,7 @@ from msg_adapters.vigs import (
 from vigs_core.camera import CameraModel
 from vigs_core.system import PipelineConfig
 from vigs_core.types import ImuNoise
+from vigs_core.vio.odometry import METRIC_STATUSES
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_param
 from vigs_ros.frontend_engine import FrontendEngine
@@ -137,6 +142,12 @@ PARAMS = [
     ParamSpec("path_every_n", 10, "publish the path every n frames (and at every keyframe)"),
     ParamSpec("path_max_poses", 20000, "poses kept in the path"),
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
+    ParamSpec("odometry_position_std", 0.05, "position standard deviation (m) /odometry reports while the estimator "
+                                             "is metric (tracking / reinitialised; it computes no per-frame "
+                                             "covariance: set it from the benchmarks' ATE)"),
+    ParamSpec("odometry_rotation_std", 0.01, "rotation standard deviation (rad) /odometry reports while metric"),
+    ParamSpec("odometry_unknown_std", 1000.0, "standard deviation (m, rad) /odometry reports while the estimator "
+                                              "is not metric (initialising, lost, vision-only): do not fuse"),
     ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window); "
                                      "also bounds the samples queued for the tracking thread"),
     ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))"),
@@ -433,7 +444,8 @@ class FrontendNode(VigsNode):
             T_before = self.engine.pose_before_correction(T_wc, self.engine.odometry.frames[-1].ref)
             before = None if T_before is None else body_from_camera(T_before, self.T_bc)
         T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc), before)
-        self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"]))
+        self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"],
+                                               pose_covariance=self.pose_covariance(self.engine.status)))
         self.latency_s.append(time.monotonic() - arrived)
         self.status.count("odometry_out")
         if p["publish_tf"]:
@@ -441,9 +453,31 @@ class FrontendNode(VigsNode):
                 StampedTransform(t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
                 StampedTransform(t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
 
+    def pose_covariance(self, status: str) -> np.ndarray:
+        """(6, 6) covariance of /odometry's pose for the estimator's status (parameters ``odometry_*_std``)."""
+        p = self.p
+        if status in METRIC_STATUSES:
+            std = [p["odometry_position_std"]] * 3 + [p["odometry_rotation_std"]] * 3
+        else:
+            std = [p["odometry_unknown_std"]] * 6
+        return np.diag(np.square(np.asarray(std, dtype=np.float64)))
+
+    def report_estimator(self, out) -> None:
+        """The estimator's status on /vigs/status: an error while lost (with the failure's reason), a warning
+        when it is metric again."""
+        self.status.info["estimator"] = out.status
+        if out.failure is not None:
+            self.status.count("estimator_failures")
+            self.status.set_error("estimator", f"estimator failure at {out.t_ns} ns: {out.failure}; /odometry is "
+                                               "not metric until the IMU initialises again")
+        if out.status == "reinitialised" and "estimator" in self.status.errors:
+            self.status.clear_error("estimator")
+            self.status.warn("estimator_reinitialised", f"estimator re-initialised at {out.t_ns} ns: metric again")
+
     def publish_frame(self, out) -> None:
         """What follows a frame's keyframe work: the path, keyframes and their updates, the state."""
         p = self.p
+        self.report_estimator(out)
         if out.T_wc is None:
             return
         T_wb = body_from_camera(out.T_wc, self.T_bc)
@@ -529,7 +563,7 @@ class FrontendNode(VigsNode):
         (out / "frames_processed.txt").write_text("".join(f"{t}\n" for t in self.processed_ns))
         (out / "frontend_report.json").write_text(json.dumps(report, indent=2))
         print(f"[frontend] wrote {out}/trajectory.txt ({report.get('frames_posed', 0)} frames), odometry.txt, "
-              f"keyframes.txt, frames_processed.txt, frontend_report.json", file=sys.stderr)
+              f"keyframes.txt, frame_status.txt, frames_processed.txt, frontend_report.json", file=sys.stderr)
 
     def nav_state(self, kf_id: int, t_ns: int, T_wc: np.ndarray, state, inertial: bool) -> NavStateData:
         """The body's navigation state at a keyframe (pose from the camera pose and T_body_camera)."""
@@ -540,7 +574,7 @@ class FrontendNode(VigsNode):
 def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Path) -> dict:
     """Write the engine's final frame poses (``trajectory.txt``), causal poses (``odometry.txt``) and keyframe
     poses (``keyframes.txt``) as TUM body poses ``T_WB = T_WC T_bc^-1``; returns their counts."""
-    from vigs_core.io import write_tum
+    from vigs_core.io import write_frame_status, write_tum
     from vigs_core.system.pipeline import poses_to_trajectory
 
     odo = engine.odometry
@@ -551,6 +585,10 @@ def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Pat
         T_wb = np.linalg.inv(T_cw) @ np.linalg.inv(T_bc)  # as vigs run computes it
         write_tum(out / f"{name}.txt", poses_to_trajectory(t_ns, T_wb))
         counts[f"{name}_poses"] = int(len(t_ns))
+    if hasattr(odo, "frame_status"):
+        write_frame_status(out / "frame_status.txt", odo.frame_status)
+        counts["frame_status"] = odo.report()["frame_status"]
+        counts["failures"] = odo.vio.failures
     counts["frames_posed"] = counts.pop("trajectory_poses")
     counts["keyframes"] = counts.pop("keyframes_poses")
     return counts

@@ -25,8 +25,9 @@
 * once metric, every keyframe's state is checked after its BA and ``metric_hold_delay_s`` after the alignment the
   scale is checked (:class:`~vigs_core.vio.estimator.VisualInertialEstimator` ``health``, ``check_scale``); a
   failure sends the estimator back to the vision-only stage on the current map and it initialises again;
-* every processed frame gets a status (:data:`FRAME_STATUSES`, :attr:`VisualInertialOdometry.frame_status`):
-  ``initialising`` before the first alignment, ``tracking`` once metric, ``lost`` from a failure until the
+* every processed frame gets a status (:data:`FRAME_STATUSES`, :attr:`VisualInertialOdometry.frame_status`),
+  the estimator's when the frame's pose is published (before its keyframe work): ``initialising`` before the
+  first alignment, ``tracking`` once metric, ``lost`` from a failure until the
   estimator is metric again, ``reinitialised`` after that. A failure also marks ``lost`` the frames it shows were
   wrong: those after the previous keyframe (a divergent state), or all since the alignment (a scale that did not
   hold). The status is the metric claim: ``tracking`` and ``reinitialised`` frames are metric;
@@ -258,12 +259,12 @@ class VisualInertialOdometry(DenseOdometry):
                 on_pose: Callable[[torch.Tensor], None] | None = None) -> torch.Tensor | None:
         """Consume one frame; its world->camera pose (4, 4), the first frame's while still (module docstring),
         or None while not initialised (``on_pose``: see :meth:`DenseOdometry.process`)."""
+        self.frame_status[int(t_ns)] = self.status   # the claim its pose is published with (before keyframe work)
         pose = super().process(t_ns, image, on_pose)
         if pose is None and self._still():
             self._held.append(int(t_ns))
             pose = torch.eye(4, dtype=torch.float64)
             self._send_pose(pose)
-        self.frame_status[int(t_ns)] = self.status
         return pose
 
     def _still(self) -> bool:
