@@ -1,7 +1,9 @@
 """IMU faults on the shipped sample, through the streaming core the frontend node drives
 (:class:`vigs_core.system.stream.OdometryStream`: IMU samples in recorded order, each frame once the IMU covers
-it): a 2 s IMU gap after the IMU initialisation, and one IMU sample stamped 1000 s in the future.
+it): a 2 s IMU gap after the IMU initialisation, one IMU sample stamped 1000 s in the future, and an
+accelerometer bias step.
 
+Every case checks the metric claim: no frame published as metric is off by more than ``BAD_M``.
 The sample initialises the IMU about 10 s in (``GAP_START_S`` is after it). Before this was handled the gap sent
 the trajectory about 1 km away in 10 s, and the future stamp made every later sample look out of order for good.
 Checked: the gap is not integrated across (prediction and inertial terms skip it; the frames in it are tracked
@@ -18,19 +20,22 @@ from ros_bags import SAMPLE_BAG
 
 from vigs_core.eval import evaluate_trajectory
 from vigs_core.system import OdometryStream, PipelineConfig
-from vigs_core.system.pipeline import poses_to_trajectory
+from vigs_core.system.pipeline import groundtruth_at, poses_to_trajectory
 from vigs_core.system.sources import open_input
 from vigs_core.types import ImuSamples
+from vigs_core.vio.odometry import METRIC_STATUSES
 
 GAP_START_S = 13.0
 GAP_S = 2.0
 GAP_ATE_M = 0.08
+BAD_M = 0.5
 ATE_SLACK_M = 0.005
 
 
 def stream_run(imu: ImuSamples) -> tuple[float, list[str], OdometryStream]:
     """The sample through an OdometryStream fed ``imu`` in its recorded order; SE(3) ATE (m) of the final body
-    poses, the IMU remarks, and the stream."""
+    poses of the frames published as metric, the IMU remarks, and the stream. Checks the metric claim: no frame
+    published as metric is off by more than ``BAD_M`` (after the SE(3) alignment of those frames)."""
     seq = open_input(SAMPLE_BAG)
     stream = OdometryStream(seq.camera, PipelineConfig(), seq.T_BS, seq.imu_noise)
     remarks, k = [], 0
@@ -40,10 +45,16 @@ def stream_run(imu: ImuSamples) -> tuple[float, list[str], OdometryStream]:
             remarks += [remark] if remark else []
             k += 1
         stream.add_image(t_ns, image)
-    assert stream.metric
-    t, T_cw = stream.odometry.final_frame_poses()
-    T_wb = np.linalg.inv(T_cw.numpy()) @ np.linalg.inv(seq.T_BS)
-    result = evaluate_trajectory(seq.groundtruth, poses_to_trajectory(t, T_wb), align="se3", max_diff_s=1e-3)
+    odo = stream.odometry
+    t, T_cw = odo.final_frame_poses()
+    metric = np.array([odo.frame_status[int(x)] in METRIC_STATUSES for x in t])
+    T_wb = (np.linalg.inv(T_cw.numpy()) @ np.linalg.inv(seq.T_BS))[metric]
+    result = evaluate_trajectory(seq.groundtruth, poses_to_trajectory(t[metric], T_wb), align="se3",
+                                 max_diff_s=1e-3)
+    A = np.array(result["alignment"])
+    ref, inside = groundtruth_at(seq.groundtruth, t[metric])
+    error = np.linalg.norm(T_wb[inside, :3, 3] @ A[:3, :3].T + A[:3, 3] - ref.position, axis=1)
+    assert error.max() <= BAD_M, f"a frame published as metric is {error.max():.2f} m off"
     return result["ate_rmse"], remarks, stream
 
 
@@ -59,6 +70,7 @@ def test_an_imu_gap_is_not_integrated_across(clean):
     keep = (imu.t_ns < t0) | (imu.t_ns >= t0 + int(GAP_S * 1e9))
     ate, remarks, stream = stream_run(ImuSamples(imu.t_ns[keep], imu.gyro[keep], imu.acc[keep]))
     assert any("IMU gap of 2005.0 ms" in r for r in remarks), remarks
+    assert stream.metric and not stream.odometry.vio.failures   # bridged, not a failure
     assert len(stream.odometry.final_frame_poses()[0]) == len(clean_stream.odometry.final_frame_poses()[0])
     assert ate <= GAP_ATE_M, (ate, clean_ate)
 
@@ -72,3 +84,20 @@ def test_a_future_stamped_imu_sample_is_rejected(clean):
     assert any("rejected as an outlier" in r for r in remarks), remarks
     assert int(imu.t_ns[k]) < stream.imu.latest_ns <= int(imu.t_ns[-1])   # later samples were taken
     assert ate <= clean_ate + ATE_SLACK_M, (ate, clean_ate)
+
+
+def test_an_accelerometer_bias_step_is_detected_and_nothing_divergent_is_published_as_metric(clean):
+    """A 3 m/s^2 accelerometer bias step after the initialisation (a knocked IMU): the estimator detects the
+    implausible bias within a second, marks the frames from then on lost (not metric) and does not accept an
+    initialisation on the inconsistent IMU; stream_run checks that no frame published as metric is off by
+    more than BAD_M."""
+    imu, _ = clean
+    t0 = int(imu.t_ns[0]) + int(GAP_START_S * 1e9)
+    acc = imu.acc.copy()
+    acc[imu.t_ns >= t0] += np.array([0.0, 3.0, 3.0])
+    _, _, stream = stream_run(ImuSamples(imu.t_ns, imu.gyro, acc))
+    odo = stream.odometry
+    failure = odo.vio.failures[0]
+    assert "accelerometer bias" in failure["reason"] and 0 < failure["t_ns"] - t0 < 1e9, odo.vio.failures
+    assert not stream.metric and odo.report()["frame_status"]["lost"] > 100
+    assert all(status == "lost" for t, status in odo.frame_status.items() if t > failure["t_ns"])
