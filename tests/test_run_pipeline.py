@@ -132,6 +132,36 @@ def test_vigs_run_with_loop_closure_in_its_worker_process(sequence, tmp_path):
     assert report["peak_rss_mb_worker_process"] > 50   # a Python process with torch imported
 
 
+def test_unreadable_frames_are_skipped_and_too_many_end_the_run_with_its_outputs(sequence, tmp_path, capsys):
+    """A 0-byte PNG and a garbage PNG mid-sequence: skipped with a warning naming the file, listed in the report,
+    every other frame posed. With ``max_bad_frames: 1`` the second one ends the run: exit 2 with a one-line
+    message, and the trajectory and report of the frames before it are written (``error`` says why)."""
+    t_ns, images, T_WC = sequence
+    seq = tmp_path / "seq"
+    write_asl(seq, t_ns, images, T_WC)
+    frames = sorted((seq / "mav0" / "cam0" / "data").iterdir())
+    frames[10].write_bytes(b"")
+    frames[20].write_bytes(np.random.default_rng(0).integers(0, 255, 700, dtype=np.uint8).tobytes())
+    params = tmp_path / "p.yaml"
+    switches = (f"frontend:\n  ros__parameters:\n    width: {W}\n    height: {H}\n    odometry:\n"
+                "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n"
+                "    imu: {enabled: false}\n    loop: {enabled: false}\n    mapping: {enabled: false}\n")
+    params.write_text(switches)
+    out = tmp_path / "out"
+    assert vigs_main(["run", str(seq), "--params", str(params), "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [b["t_ns"] for b in report["bad_frames"]] == [int(t_ns[10]), int(t_ns[20])]
+    assert report["frames_posed"] == N - 2 and report["error"] is None
+    assert f"skipped: cannot read image {frames[10]}" in capsys.readouterr().err
+    params.write_text(switches + "    max_bad_frames: 1\n")
+    assert vigs_main(["run", str(seq), "--params", str(params), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "vigs run: 2 frames could not be read (max_bad_frames 1)" in err and "Traceback" not in err
+    report = json.loads((out / "report.json").read_text())
+    assert report["error"].startswith("ValueError: 2 frames") and report["frames"] == 19
+    assert len(read_tum(out / "trajectory.txt")) == 19
+
+
 def test_vigs_run_rejects_bad_input_and_params(tmp_path):
     assert vigs_main(["run", str(tmp_path / "missing"), "--no-progress"]) == 2
     bad = tmp_path / "bad.yaml"

@@ -112,3 +112,11 @@ class Trajectory:
 
         rot = quat_to_matrix(torch.from_numpy(self.quat_wxyz))
         return se3_from_rt(rot, torch.from_numpy(self.position)).numpy()
+
+
+@dataclass
+class BadFrame:
+    """In place of an image a source could not read or decode (a 0-byte or corrupt file, an undecodable message):
+    ``reason`` says why; the run skips the frame with a warning."""
+
+    reason: str

@@ -29,7 +29,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import matrix_to_quat, quat_to_matrix
-from vigs_core.types import ImuSamples, Trajectory
+from vigs_core.types import BadFrame, ImuSamples, Trajectory
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -317,7 +317,8 @@ class BagRecording:
     image_count: int
 
     def images(self) -> Iterator[tuple[int, np.ndarray]]:
-        """``(t_ns, image)`` in stamp order: (H, W) uint8 grey or (H, W, 3) uint8 RGB (header stamps)."""
+        """``(t_ns, image)`` in stamp order: (H, W) uint8 grey or (H, W, 3) uint8 RGB (header stamps), or a
+        :class:`~vigs_core.types.BadFrame` for a message that cannot be decoded."""
         if self.image_topic is None:
             return iter(())
         return _iter_images(self.path, self.image_topic)
@@ -376,7 +377,11 @@ def _iter_images(path: Path, topic: str) -> Iterator[tuple[int, np.ndarray]]:
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _, raw in _messages(reader, conns):
             msg = reader.deserialize(raw, conn.msgtype)
-            yield _stamp(msg.header), decode_image(msg)
+            try:
+                image = decode_image(msg)
+            except ValueError as err:   # one bad message: the caller skips the frame
+                image = BadFrame(str(err))
+            yield _stamp(msg.header), image
 
 
 def camera_from_info(msg) -> CameraModel:

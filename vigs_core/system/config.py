@@ -30,6 +30,8 @@ class PipelineConfig:
         max_frames: stop after this many frames (None: all).
         frame_stride: use every n-th frame.
         image_topic: bag image topic (None: found by message type).
+        max_bad_frames: frames that cannot be read or decoded are skipped with a warning; more than this many
+            end the run (its outputs are written) with an error.
         odometry: the frontend's settings.
         imu: visual-inertial settings (:class:`vigs_core.vio.VioConfig`); with ``imu.enabled`` (default) and an
             input that has IMU data the odometry is visual-inertial (metric, gravity-aligned once initialised).
@@ -46,6 +48,7 @@ class PipelineConfig:
     max_frames: int | None = None
     frame_stride: int = 1
     image_topic: str | None = None
+    max_bad_frames: int = 20
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     imu: VioConfig = field(default_factory=VioConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)

@@ -10,6 +10,7 @@ Outputs in the output folder:
 * ``trajectory_cam.txt``: the same as camera poses ``T_WC``;
 * ``odometry.txt``: TUM body poses as output causally while running (camera-rate odometry);
 * ``keyframes.txt``: TUM body poses of the keyframes;
+* ``frame_status.txt``: with the IMU, every processed frame's estimator status (:mod:`vigs_core.io.frame_status`);
 * ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and the loop-closure
   process as ``peak_rss_mb_worker_process``), accuracy (Sim(3)-aligned ATE and recall against the ground truth
   sampled at the frame times).
@@ -33,7 +34,9 @@ seconds, PSNR/SSIM on non-keyframe frames at the final poses, before and after t
 
 Ctrl-C (SIGINT) or SIGTERM stops the run at the next frame boundary; everything computed so far is written (the
 map without waiting for the mapper's backlog and without render quality) and ``report.json`` says
-``interrupted`` (the signal's name); a second signal interrupts at once.
+``interrupted`` (the signal's name); a second signal interrupts at once. An error during the run is written out
+the same way (``report.json`` ``error``) and then raised. A frame that cannot be read or decoded is skipped with
+a warning (``bad_frames``); more than ``max_bad_frames`` of them is such an error.
 """
 from __future__ import annotations
 
@@ -58,7 +61,7 @@ from vigs_core.system.mapping import OnlineMapping
 from vigs_core.system.prefetch import FramePrefetcher
 from vigs_core.system.sources import InputSequence, open_input
 from vigs_core.system.stream import OdometryStream, Preprocessor
-from vigs_core.types import ImuNoise, ImuSamples, Trajectory
+from vigs_core.types import BadFrame, ImuNoise, ImuSamples, Trajectory
 from vigs_core.vio.odometry import VisualInertialOdometry
 
 
@@ -132,6 +135,8 @@ def load_frames(path: str | Path, width: int, height: int, duration_s: float | N
     for t_ns, raw in seq.frames():
         if duration_s is not None and stamps and t_ns > stamps[0] + int(duration_s * 1e9):
             break
+        if isinstance(raw, BadFrame):
+            raise ValueError(f"{path}: frame at {t_ns} ns: {raw.reason}")
         stamps.append(t_ns)
         images.append(pre(raw))
     t_ns = np.array(stamps, dtype=np.int64)
@@ -229,10 +234,12 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         bar = tqdm(total=total, desc=f"vigs run {seq.name}", unit="frame", file=sys.stderr)
     t_wait = 0.0
     n = 0
-    reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else stream.prepare(raw),
-                             count=total * cfg.frame_stride)
+    reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else (
+        raw if isinstance(raw, BadFrame) else stream.prepare(raw)), count=total * cfg.frame_stride)
     t_loop = time.perf_counter()
     stop = StopRequest()
+    bad_frames: list[dict] = []
+    failure: Exception | None = None
     try:
         while not stop.requested:
             t0 = time.perf_counter()
@@ -241,6 +248,14 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             except StopIteration:
                 break
             t_wait += time.perf_counter() - t0
+            if isinstance(image, BadFrame):   # skipped like a frame the run could not keep up with
+                bad_frames.append({"t_ns": int(t_ns), "reason": image.reason})
+                print(f"vigs run: frame at {t_ns} ns skipped: {image.reason}", file=sys.stderr)
+                if len(bad_frames) > cfg.max_bad_frames:
+                    raise ValueError(f"{len(bad_frames)} frames could not be read (max_bad_frames "
+                                     f"{cfg.max_bad_frames}); the last: {image.reason}")
+                stream.skip(t_ns)
+                continue
             if only_ns is not None and t_ns not in only_ns:
                 stream.skip(t_ns)
                 continue
@@ -257,13 +272,16 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                 bar.update(1)
                 if n % 20 == 0:
                     bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
+    except Exception as err:   # noqa: BLE001 - written out below, then raised
+        failure = err
     finally:
         stop.restore()
         reader.close()
     if bar is not None:
         bar.close()
-    if stop.requested:
-        print(f"vigs run: {stop.requested} after {n} frames: writing what was computed", file=sys.stderr)
+    if stop.requested or failure is not None:
+        why = stop.requested or f"{type(failure).__name__}: {failure}"
+        print(f"vigs run: stopped after {n} frames ({why}): writing what was computed", file=sys.stderr)
     if loop is not None:
         loop.finish()
     loop_s = time.perf_counter() - t_loop
@@ -284,13 +302,15 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "peak_rss_mb_worker_process": round(peak_rss_mb(resource.RUSAGE_CHILDREN), 1),
-        "interrupted": stop.requested,
+        "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
+        "bad_frames": bad_frames,
     }
     if loop is not None:
         report["loop"] = loop.report()
+    cut_short = stop.requested is not None or failure is not None
     if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
-        mapping.finish(drain=not stop.requested)
-        report["mapping"] = mapping.evaluate(t_ns, T_WC) if not stop.requested else {
+        mapping.finish(drain=not cut_short)
+        report["mapping"] = mapping.evaluate(t_ns, T_WC) if not cut_short else {
             "gaussians": len(mapping.mapper.map), "interrupted": True}
     metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
     if seq.groundtruth is not None and len(t_ns):
@@ -327,4 +347,6 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         if mapping is not None:
             mapping.save(out / "map.ply")
         (out / "report.json").write_text(json.dumps(report, indent=2))
+    if failure is not None:
+        raise failure
     return report

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from vigs_core.camera import CameraModel
-from vigs_core.types import ImuNoise, ImuSamples, Trajectory
+from vigs_core.types import BadFrame, ImuNoise, ImuSamples, Trajectory
 
 GROUNDTRUTH_NAMES = ("groundtruth_tum.txt", "groundtruth.txt", "groundtruth.csv")
 
@@ -25,7 +25,8 @@ class InputSequence:
         camera: calibrated (possibly distorted) camera of the images.
         T_BS: (4, 4) camera pose in the body (IMU) frame.
         frame_count: number of frames.
-        frames: callable returning an iterator of ``(t_ns, grey image (H, W) uint8)`` in time order.
+        frames: callable returning an iterator of ``(t_ns, grey image (H, W) uint8)`` in time order, with a
+            :class:`~vigs_core.types.BadFrame` in place of an image that cannot be read or decoded.
         groundtruth: body trajectory in the world, or None.
         imu: IMU samples (body frame, same clock as the images), or None.
         imu_noise: the IMU's noise densities (EuRoC ADIS16448 defaults when the input has none).
@@ -41,11 +42,13 @@ class InputSequence:
     imu_noise: ImuNoise | None = None
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
+def _grey(image: np.ndarray | BadFrame) -> np.ndarray | BadFrame:
+    if isinstance(image, BadFrame):
+        return image
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     if image.dtype != np.uint8:
-        raise ValueError(f"input image of dtype {image.dtype}; expected 8-bit (mono8 / rgb8)")
+        return BadFrame(f"image of dtype {image.dtype}; expected 8-bit (mono8 / rgb8)")
     return image
 
 
@@ -60,9 +63,7 @@ def open_euroc(root: str | Path) -> InputSequence:
     def frames():
         for t, p in zip(t_ns, paths):
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise FileNotFoundError(f"cannot read image {p}")
-            yield int(t), _grey(img)
+            yield int(t), _grey(BadFrame(f"cannot read image {p}") if img is None else img)
 
     gt = seq.groundtruth if seq.has_groundtruth else None
     has_imu = (seq.imu_dir / "data.csv").is_file()
