@@ -146,3 +146,38 @@ def test_ros1_bags_read_through_the_same_reader(tmp_path):
     np.testing.assert_array_equal(got[1][1], frames[1][1])
     with pytest.raises(FileNotFoundError, match="does not exist"):
         read_bag(tmp_path / "missing")
+
+
+def test_an_mcap_bag_cut_short_is_read_up_to_the_damage(tmp_path):
+    """The shipped sample's MCAP file cut at 60% (no footer, the last chunk broken): rosbags refuses it; read_bag
+    warns and reads what precedes the damage (IMU, camera info, images in order), and ``vigs run`` tracks those
+    frames."""
+    import json
+    import warnings
+
+    from ros_bags import SAMPLE_BAG
+
+    from vigs_cli.main import main as vigs_main
+    from vigs_core.io.rosbag import DamagedBagWarning
+
+    whole = read_bag(SAMPLE_BAG)
+    (mcap,) = Path(SAMPLE_BAG).glob("*.mcap")
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    data = mcap.read_bytes()
+    (cut / mcap.name).write_bytes(data[:len(data) * 6 // 10])
+    with pytest.warns(DamagedBagWarning, match="is damaged"):
+        rec = read_bag(cut)
+    assert rec.camera == whole.camera and 0.4 * len(whole.imu) < len(rec.imu) < 0.7 * len(whole.imu)
+    np.testing.assert_array_equal(rec.imu.t_ns, whole.imu.t_ns[:len(rec.imu)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DamagedBagWarning)
+        stamps = [t for t, _ in rec.images()]
+        assert len(stamps) == rec.image_count and 0.4 * whole.image_count < len(stamps) < 0.7 * whole.image_count
+        assert stamps == sorted(stamps)
+        params = tmp_path / "p.yaml"
+        params.write_text("frontend:\n  ros__parameters:\n    mapping: {enabled: false}\n    loop: {enabled: false}\n")
+        assert vigs_main(["run", str(cut), "--out", str(tmp_path / "out"), "--params", str(params),
+                          "--no-progress"]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["frames_posed"] == len(stamps) and report["vio"]["metric"]

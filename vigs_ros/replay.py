@@ -93,19 +93,12 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
 
 
 def open_reader(path: str | Path):
-    """A rosbags ``AnyReader`` over a ROS 2 bag directory, a bare ``.mcap`` / ``.db3`` file or a ROS 1
-    ``.bag``; ValueError when the path is none of those."""
-    from rosbags.highlevel import AnyReader
+    """An opened reader over a ROS 2 bag directory, a bare ``.mcap`` / ``.db3`` file or a ROS 1 ``.bag`` (the
+    readable part of an MCAP file cut short, with a warning: :func:`vigs_core.io.rosbag.open_bag_reader`);
+    ValueError when the path is none of those."""
+    from vigs_core.io.rosbag import open_bag_reader
 
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"bag {path} does not exist")
-    try:
-        reader = AnyReader([path])
-        reader.open()
-    except Exception as exc:  # rosbags raises several reader-specific errors
-        raise ValueError(f"cannot open {path} as a ROS 1 or ROS 2 bag: {exc}") from None
-    return reader
+    return open_bag_reader(path)
 
 
 def _message_class(typename: str):

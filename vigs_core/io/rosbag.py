@@ -21,6 +21,7 @@ other recordings with the same message types read too.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -330,10 +331,45 @@ class BagRecording:
         return _iter_images(self.path, self.depth_topic)
 
 
-def _reader(path: Path):
+class DamagedBagWarning(UserWarning):
+    """A bag could only be read up to damage in it (e.g. an MCAP file cut short)."""
+
+
+def open_bag_reader(path: str | Path):
+    """An opened reader over a ROS 2 bag directory, a bare ``.mcap`` / ``.db3`` file or a ROS 1 ``.bag``: a rosbags
+    ``AnyReader``, or for an MCAP file rosbags cannot open (cut short: no footer) its readable part
+    (:class:`~vigs_core.io.mcap_salvage.SalvagedMcap`, with a :class:`DamagedBagWarning`). ValueError names the
+    path when it is none of those."""
+    import warnings
+
     from rosbags.highlevel import AnyReader
 
-    return AnyReader([Path(path)], default_typestore=_typestore())
+    from vigs_core.io.mcap_salvage import SalvagedMcap
+
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"bag {path} does not exist")
+    try:
+        reader = AnyReader([path], default_typestore=_typestore())
+        reader.open()
+        return reader
+    except Exception as exc:   # noqa: BLE001 - rosbags raises several reader-specific errors
+        mcaps = [path] if path.suffix == ".mcap" else sorted(path.glob("*.mcap")) if path.is_dir() else []
+        if len(mcaps) != 1:
+            raise ValueError(f"cannot open {path} as a ROS 1 or ROS 2 bag: {exc}") from None
+        salvaged = SalvagedMcap(mcaps[0], _typestore())
+        warnings.warn(f"{mcaps[0]} is damaged ({exc}); reading its {salvaged.message_count} messages up to the "
+                      f"damage ({salvaged.damage})", DamagedBagWarning, stacklevel=2)
+        return salvaged
+
+
+@contextmanager
+def _reader(path: Path):
+    reader = open_bag_reader(path)
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 def _messages(reader, connections: list) -> Iterator:
