@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 from ros_bags import rosbags_types, write_ros2_bag
@@ -16,6 +17,8 @@ from ros_helpers import DOMAIN_ID, isolated_env, ros_context  # noqa: F401  (ros
 
 from msg_adapters.imu import sample_to_imu
 from vigs_ros.launch import LaunchConfig, Supervisor, bag_input_remaps, commands
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 class Launched:
@@ -155,3 +158,44 @@ def test_composed_launch_with_bag_ends_after_replay(tmp_path):
         run.proc.kill()
     assert "[replay] 40 messages on 1 topics" in run.output
     assert "replay finished" in run.output and "all processes exited cleanly" in run.output
+
+
+BAD_PARAMS = [
+    ("frontend:\n  ros__parameters:\n    width: abc\n", "parameter 'width' of frontend: expected int, got 'abc'"),
+    ("frontend:\n  ros__parameters:\n    mapping: false\n",
+     "parameter 'mapping' of frontend: expected a mapping of its fields"),
+    ("frontend:\n  ros__parameters:\n    widht: 3\n", "unknown parameter 'widht' of frontend"),
+    ("fronted:\n  ros__parameters:\n    width: 3\n", "unknown node 'fronted'"),
+    ("/**:\n  ros__parameters:\n    imu: {max_speed: fast}\n", "parameter 'imu.max_speed' of /**: expected float"),
+    ("mapper:\n  ros__parameters:\n    map_path: [1, 2]\n", "parameter 'map_path' of mapper: expected str"),
+    ("frontend: [\n", "not valid YAML"),
+]
+
+
+def test_launch_rejects_bad_parameter_files_naming_file_and_key(tmp_path):
+    """Every bad --params file stops ``vigs launch`` before any process starts, with one line naming the file, the
+    node and the key (rcl alone would ignore an unknown key, and a wrong type would kill the node with a
+    traceback); the shipped files and a good override pass."""
+    from vigs_ros.graph import node_params
+    from vigs_ros.params import check_params_file, default_params_files
+
+    specs = node_params()
+    for f in default_params_files():
+        check_params_file(f, specs)
+    good = tmp_path / "good.yaml"
+    good.write_text("frontend:\n  ros__parameters:\n    width: 320\n    imu: {max_speed: 5}\n")
+    check_params_file(good, specs)
+    for n, (text, says) in enumerate(BAD_PARAMS):
+        bad = tmp_path / f"bad{n}.yaml"
+        bad.write_text(text)
+        done = subprocess.run([sys.executable, "-m", "vigs_cli.main", "launch", "--params", str(bad)], cwd=ROOT,
+                              env=isolated_env(), capture_output=True, text=True, timeout=60) if n == 0 else None
+        if done is not None:
+            assert done.returncode == 2 and done.stdout.strip().count("\n") == 0 and "Traceback" not in done.stderr
+            assert f"[launch] error: bad --params: {bad}: {says}" in done.stdout, done.stdout + done.stderr
+        try:
+            check_params_file(bad, specs)
+        except ValueError as err:
+            assert str(err).startswith(f"{bad}: ") and says in str(err), err
+        else:
+            raise AssertionError(f"{text!r} passed the check")

@@ -162,11 +162,25 @@ def test_unreadable_frames_are_skipped_and_too_many_end_the_run_with_its_outputs
     assert len(read_tum(out / "trajectory.txt")) == 19
 
 
-def test_vigs_run_rejects_bad_input_and_params(tmp_path):
-    assert vigs_main(["run", str(tmp_path / "missing"), "--no-progress"]) == 2
+@pytest.mark.parametrize("text, says", [
+    ("    odometry:\n      no_such_key: 1\n", "unknown parameter odometry.'no_such_key'"),
+    ("    width: abc\n", "parameter width: expected int, got 'abc' (str)"),
+    ("    width: [1, 2]\n", "parameter width: expected int, got [1, 2] (list)"),
+    ("    mapping: false\n", "parameter mapping: expected a mapping of MappingConfig fields, got False"),
+    ("    imu: {max_speed: fast}\n", "parameter imu.max_speed: expected float, got 'fast'"),
+    ("    imu: {enabled: 1}\n", "parameter imu.enabled: expected bool, got 1 (int)"),
+    ("  [\n", "not valid YAML"),
+])
+def test_vigs_run_rejects_bad_params_in_one_line_naming_file_and_key(tmp_path, capsys, text, says):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("frontend:\n  ros__parameters:\n    odometry:\n      no_such_key: 1\n")
+    bad.write_text("frontend:\n  ros__parameters:\n" + text)
     assert vigs_main(["run", str(tmp_path), "--params", str(bad), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"vigs run: bad --params: {bad}: ") and says in err and err.count("\n") == 1, err
+
+
+def test_vigs_run_rejects_bad_input(tmp_path):
+    assert vigs_main(["run", str(tmp_path / "missing"), "--no-progress"]) == 2
 
 
 def test_pipeline_config_overrides_and_validation():
@@ -177,6 +191,12 @@ def test_pipeline_config_overrides_and_validation():
         apply_overrides(PipelineConfig(), {"odometry": {"graph": {"windw": 6}}})
     with pytest.raises(ValueError):
         apply_overrides(PipelineConfig(), {"odometry": {"solver_dtype": "float16"}})
+    cfg = apply_overrides(PipelineConfig(), {"imu": {"max_speed": 5, "gravity": 9.8}, "max_frames": None,
+                                             "loop": {"detection": {"thumbnail_size": [16, 12]}}})
+    assert isinstance(cfg.imu.max_speed, float) and cfg.max_frames is None
+    assert cfg.loop.detection.thumbnail_size == (16, 12)
+    with pytest.raises(ValueError, match=r"thumbnail_size\[1\]: expected int"):
+        apply_overrides(PipelineConfig(), {"loop": {"detection": {"thumbnail_size": [16, 1.5]}}})
 
 
 def test_vigs_run_on_ros2_bag_with_groundtruth_beside_it(sequence, tmp_path):

@@ -32,10 +32,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vigs_ros.graph import NODES
+    from vigs_ros.graph import NODES, node_params
     from vigs_ros.launch import LaunchConfig, bag_input_remaps, launch
-    from vigs_ros.params import default_params_files, load_params_file
+    from vigs_ros.params import check_params_file, default_params_files, load_params_file
 
+    try:   # before anything reads them
+        specs = node_params()
+        for f in args.params:
+            check_params_file(f, specs)
+    except (OSError, ValueError) as exc:
+        print(f"[launch] error: bad --params: {exc}")
+        return 2
     replay_args: list[str] = []
     ros_args: list[str] = []
     if args.bag:

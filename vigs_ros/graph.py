@@ -23,6 +23,11 @@ def node_class(name: str):
     return getattr(importlib.import_module(module), cls)
 
 
+def node_params(names: list[str] | None = None) -> dict[str, list]:
+    """``{node name: its declared ParamSpecs}`` of the graph's nodes (default all)."""
+    return {n: importlib.import_module(NODES[n][0]).PARAMS for n in (names or NODES)}
+
+
 def main_composed(argv: list[str] | None = None) -> int:
     """``python -m vigs_ros.graph NODE... [--ros-args ...]``: the named nodes (default all) in this process,
     spun by one MultiThreadedExecutor."""

@@ -2,7 +2,8 @@
 process (``composed``), optionally with a bag replay feeding them.
 
 Every node process gets ``--ros-args --params-file`` for the shipped ``params/*.yaml`` (``ros.yaml`` first)
-and then the user's files (later files override earlier ones), plus ``-p use_sim_time:=true`` when a bag is
+and then the user's files (later files override earlier ones; each is checked first against the nodes' declared
+parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), plus ``-p use_sim_time:=true`` when a bag is
 replayed (nodes run on the bag's ``/clock``).
 
 Supervision: children run in their own sessions, so a terminal's Ctrl-C reaches only the launcher, which
@@ -20,8 +21,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from vigs_ros.graph import NODES
-from vigs_ros.params import default_params_files
+from vigs_ros.graph import NODES, node_params
+from vigs_ros.params import check_params_file, default_params_files
 
 
 @dataclass
@@ -76,9 +77,11 @@ def bag_input_remaps(bag: str | Path) -> tuple[list[str], list[str]]:
 def node_ros_args(cfg: LaunchConfig) -> list[str]:
     """``--ros-args`` of every node process."""
     files = [*default_params_files(), *map(Path, cfg.params)]
+    specs = node_params()
     for f in files:
         if not f.is_file():
             raise ValueError(f"parameter file {f} does not exist")
+        check_params_file(f, specs)
     args = ["--ros-args"]
     for f in files:
         args += ["--params-file", str(f)]

@@ -101,22 +101,11 @@ def nested(values: dict[str, Any], prefix: str) -> dict[str, Any]:
 
 
 def build_config(default, values: dict[str, Any], prefix: str = ""):
-    """``default`` (a config dataclass instance) with the ``<prefix>...`` parameters of ``values`` applied
-    (:func:`vigs_core.system.apply_overrides`); list values of tuple fields become tuples again."""
+    """``default`` (a config dataclass instance) with the ``<prefix>...`` parameters of ``values`` applied and
+    type-checked (:func:`vigs_core.system.apply_overrides`; list values of tuple fields become tuples)."""
     from vigs_core.system import apply_overrides
 
-    config = apply_overrides(default, nested(values, prefix))
-    _restore_tuples(config)
-    return config
-
-
-def _restore_tuples(obj) -> None:
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            _restore_tuples(value)
-        elif isinstance(value, list) and isinstance(f.default, tuple):
-            setattr(obj, f.name, tuple(value))
+    return apply_overrides(default, nested(values, prefix))
 
 
 def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
@@ -138,6 +127,61 @@ def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
             raise ValueError(f"{path}: section {key!r} must hold a 'ros__parameters' mapping")
         out.update(_flatten(section["ros__parameters"] or {}))
     return out
+
+
+RCL_PARAMS = ("use_sim_time",)   # declared by rclpy itself on every node
+
+
+def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) -> None:
+    """Check a parameter file against the nodes' declared parameters ``{node name: specs}``: valid YAML, only
+    known node sections (or ``/**``), only declared keys (a ``/**`` key: declared by some node) and values of the
+    declared type (a float takes an int). ValueError naming the file, the node, the key and what was expected:
+    rcl would ignore an unknown key and a wrong type would stop the node with a traceback."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got {type(data).__name__}")
+    for node, section in data.items():
+        name = str(node).lstrip("/")
+        if node != "/**" and name not in node_specs:
+            raise ValueError(f"{path}: unknown node {node!r}; expected /** or one of {sorted(node_specs)}")
+        if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
+            raise ValueError(f"{path}: section {node!r} must hold a 'ros__parameters' mapping")
+        specs = [s for v in node_specs.values() for s in v] if node == "/**" else node_specs[name]
+        by_name = {s.name: s for s in specs}
+        for key, value in _flatten(section.get("ros__parameters") or {}).items():
+            if key in RCL_PARAMS:
+                continue
+            if key not in by_name:
+                inner = sorted(n for n in by_name if n.startswith(key + "."))
+                if inner:
+                    raise ValueError(f"{path}: parameter {key!r} of {node}: expected a mapping of its fields "
+                                     f"(e.g. {inner[0][len(key) + 1:]}), got {value!r}")
+                raise ValueError(f"{path}: unknown parameter {key!r} of {node}")
+            problem = _type_problem(by_name[key].default, value)
+            if problem:
+                raise ValueError(f"{path}: parameter {key!r} of {node}: {problem}")
+
+
+def _type_problem(default: Any, value: Any) -> str | None:
+    """Why ``value`` cannot set a parameter declared with ``default``, or None."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if isinstance(default, bool):
+        ok, expected = isinstance(value, bool), "bool"
+    elif isinstance(default, int):
+        ok, expected = number and isinstance(value, int), "int"
+    elif isinstance(default, float):
+        ok, expected = number, "float"
+    elif isinstance(default, str):
+        ok, expected = isinstance(value, str), "str"
+    elif isinstance(default, (list, tuple)):
+        ok, expected = isinstance(value, list) and len(value) > 0, "a non-empty list"
+    else:
+        return None
+    return None if ok else f"expected {expected}, got {value!r} ({type(value).__name__})"
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:

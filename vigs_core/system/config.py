@@ -5,6 +5,8 @@ dataclass fields, e.g. ``odometry: {keyframes: {flow_threshold_px: 16.0}}``).
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,30 +57,84 @@ class PipelineConfig:
     mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
+def checked_value(value: Any, kind: Any, name: str) -> Any:
+    """``value`` as a field of declared type ``kind`` (bool, int, float, str, ``X | None``, ``tuple[...]``, ...);
+    ValueError naming ``name``, the expected type and the value otherwise. An int is a float; a list is a
+    tuple of the declared length."""
+    args = typing.get_args(kind)
+    if type(kind) is types.UnionType or typing.get_origin(kind) is typing.Union:
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for option in (a for a in args if a is not type(None)):
+            try:
+                return checked_value(value, option, name)
+            except ValueError as err:
+                errors.append(err)
+        raise errors[0]
+    origin = typing.get_origin(kind)
+    ok = True
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif kind is str:
+        ok = isinstance(value, str)
+    elif origin is tuple:
+        ok = isinstance(value, (list, tuple))
+        items = [args[0]] * len(value) if ok and args[-1] is Ellipsis else list(args)
+        ok = ok and len(value) == len(items)
+        if ok:
+            value = tuple(checked_value(v, a, f"{name}[{i}]") for i, (v, a) in enumerate(zip(value, items)))
+    if not ok:
+        expected = getattr(kind, "__name__", str(kind))
+        raise ValueError(f"parameter {name}: expected {expected}, got {value!r} ({type(value).__name__})")
+    return value
+
+
 def apply_overrides(obj: Any, values: dict, where: str = "") -> Any:
-    """Set dataclass fields of ``obj`` from a (nested) mapping, in place; unknown keys raise ``KeyError``
-    naming the valid ones. Returns ``obj``."""
+    """Set dataclass fields of ``obj`` from a (nested) mapping, in place, each checked against its declared type
+    (:func:`checked_value`); unknown keys raise ``KeyError`` naming the valid ones, a wrong type ``ValueError``
+    naming the key and the expected type. Returns ``obj``."""
     names = {f.name: f for f in dataclasses.fields(obj)}
+    hints = typing.get_type_hints(type(obj))
     for key, value in values.items():
         if key not in names:
             raise KeyError(f"unknown parameter {where}{key!r}; expected one of {sorted(names)}")
         current = getattr(obj, key)
-        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ValueError(f"parameter {where}{key}: expected a mapping of {type(current).__name__} fields, "
+                                 f"got {value!r} ({type(value).__name__})")
             apply_overrides(current, value, f"{where}{key}.")
         else:
-            setattr(obj, key, value)
+            setattr(obj, key, checked_value(value, hints[key], f"{where}{key}"))
     if hasattr(obj, "__post_init__"):
         obj.__post_init__()
     return obj
 
 
 def load_config(path: str | Path | None = None, node: str = NODE_NAME) -> PipelineConfig:
-    """Defaults, overridden by ``<node>: ros__parameters:`` of the YAML file ``path`` when given."""
+    """Defaults, overridden by ``<node>: ros__parameters:`` of the YAML file ``path`` when given. Malformed YAML,
+    a missing section, unknown keys and wrong types raise ``ValueError`` naming the file and the key."""
     cfg = PipelineConfig()
     if path is None:
         return cfg
-    content = yaml.safe_load(Path(path).read_text()) or {}
+    try:
+        content = yaml.safe_load(Path(path).read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
+    if not isinstance(content, dict):
+        raise ValueError(f"{path}: expected a mapping of node names, got {type(content).__name__}")
     section = content.get(node, {}).get("ros__parameters") if isinstance(content.get(node), dict) else None
-    if section is None:
-        raise KeyError(f"{path}: no '{node}: ros__parameters:' section (found top-level keys {sorted(content)})")
-    return apply_overrides(cfg, section)
+    if not isinstance(section, dict):
+        raise ValueError(f"{path}: no '{node}: ros__parameters:' mapping (found top-level keys {sorted(content)})")
+    try:
+        return apply_overrides(cfg, section)
+    except KeyError as err:
+        raise ValueError(f"{path}: {err.args[0]}") from None
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
