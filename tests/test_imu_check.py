@@ -78,6 +78,19 @@ def test_cli_on_euroc_folder_json(tmp_path, capsys):
     assert 1 < c["mean_nees_per_dof"] < 1e4
 
 
+def test_cli_counts_the_disorder_of_a_shuffled_file(tmp_path, capsys):
+    """The file's rows as recorded: a reader that sorted first would report a shuffled IMU as clean."""
+    seq = euroc_folder(tmp_path)
+    csv = seq / "mav0" / "imu0" / "data.csv"
+    header, *rows = csv.read_text().splitlines()
+    rows[100], rows[101] = rows[101], rows[100]
+    rows[2000], rows[2003] = rows[2003], rows[2000]   # 2003, 2001, 2002, 2000: two stamps step back
+    csv.write_text("\n".join([header, *rows]) + "\n")
+    assert main(["imu-check", str(seq), "--json", "--no-gt"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["out_of_order"] == 3 and report["samples"] == 3201
+
+
 def test_cli_on_ros2_bag(tmp_path, capsys):
     from vigs_core.io.rosbag import BagWriter
 

@@ -283,3 +283,17 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     # multiprocessing's resource tracker ends when it reads EOF from the exited parent: give it a moment
     _, alive = psutil.wait_procs(children, timeout=15)
     assert children and not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive)
+
+
+def test_inputs_without_imu_or_recognisable_layout_are_named(sequence, tmp_path, capsys):
+    """An ASL folder without imu0 runs vision-only with a warning saying so; a folder that is neither an ASL
+    folder nor a bag is refused in one line."""
+    from vigs_core.system.sources import MissingImuWarning, open_input
+
+    t_ns, images, T_WC = sequence
+    write_asl(tmp_path / "seq", t_ns[:3], images[:3], T_WC[:3])
+    with pytest.warns(MissingImuWarning, match="vision only"):
+        assert open_input(tmp_path / "seq").imu is None
+    (tmp_path / "empty").mkdir()
+    assert vigs_main(["run", str(tmp_path / "empty"), "--no-progress"]) == 2
+    assert "neither an EuRoC ASL folder (with mav0/) nor a ROS bag" in capsys.readouterr().err

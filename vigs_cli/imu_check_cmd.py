@@ -25,14 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _load(args):
-    from vigs_core.io import EurocSequence, read_imu_yaml, read_trajectory
+    from vigs_core.io import EurocSequence, read_euroc_imu, read_imu_yaml, read_trajectory
     from vigs_core.types import ImuNoise
 
     source = Path(args.source)
     noise, gt = None, None
     if (source / "mav0").is_dir() or source.name == "mav0":
         seq = EurocSequence(source)
-        imu = seq.imu
+        imu = read_euroc_imu(seq.imu_dir / "data.csv", recorded_order=True)   # the check counts disorder
         if (seq.imu_dir / "sensor.yaml").is_file():
             noise = seq.imu_noise
         if seq.has_groundtruth:

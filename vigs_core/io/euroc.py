@@ -44,10 +44,11 @@ GROUNDTRUTH_LAYOUT = (
 )
 
 
-def read_euroc_imu(csv: str | Path) -> ImuSamples:
-    """Read an EuRoC ``imu0/data.csv`` into :class:`ImuSamples` (sorted by stamp)."""
+def read_euroc_imu(csv: str | Path, recorded_order: bool = False) -> ImuSamples:
+    """Read an EuRoC ``imu0/data.csv`` into :class:`ImuSamples`, sorted by stamp (a repeated stamp is an error);
+    with ``recorded_order`` the rows as the file has them (for checks that count disordered stamps)."""
     t_ns, values, lines = read_stamped_rows(csv, (7,), "comma", "ns", IMU_LAYOUT)
-    order = stamp_order(csv, t_ns, lines)
+    order = np.arange(len(t_ns)) if recorded_order else stamp_order(csv, t_ns, lines)
     return ImuSamples(t_ns[order], values[order, 0:3], values[order, 3:6])
 
 

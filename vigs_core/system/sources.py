@@ -2,6 +2,7 @@
 camera calibration, the camera-IMU extrinsic and the ground truth when present."""
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +43,10 @@ class InputSequence:
     imu_noise: ImuNoise | None = None
 
 
+class MissingImuWarning(UserWarning):
+    """An input without IMU data: the run is vision-only (arbitrary scale)."""
+
+
 def _grey(image: np.ndarray | BadFrame) -> np.ndarray | BadFrame:
     if isinstance(image, BadFrame):
         return image
@@ -67,6 +72,9 @@ def open_euroc(root: str | Path) -> InputSequence:
 
     gt = seq.groundtruth if seq.has_groundtruth else None
     has_imu = (seq.imu_dir / "data.csv").is_file()
+    if not has_imu:
+        warnings.warn(f"{root}: no {seq.imu_dir / 'data.csv'}: vision only (no metric scale)", MissingImuWarning,
+                      stacklevel=2)
     imu = seq.imu if has_imu else None
     noise = seq.imu_noise if has_imu and (seq.imu_dir / "sensor.yaml").is_file() else ImuNoise()
     return InputSequence(seq.name, calib.camera, np.asarray(calib.T_BS, dtype=np.float64), len(t_ns), frames, gt,
@@ -117,6 +125,9 @@ def open_input(path: str | Path, image_topic: str | None = None) -> InputSequenc
         raise FileNotFoundError(f"{path} does not exist (expected an EuRoC ASL folder or a ROS bag)")
     if path.is_dir() and ((path / "mav0").is_dir() or path.name == "mav0"):
         return open_euroc(path)
-    if path.is_dir() or path.suffix in (".bag", ".mcap", ".db3"):
+    bag_dir = path.is_dir() and any((path / "metadata.yaml").is_file() or any(path.glob(f"*{ext}"))
+                                    for ext in (".mcap", ".db3"))
+    if bag_dir or path.suffix in (".bag", ".mcap", ".db3"):
         return open_bag(path, image_topic)
-    raise ValueError(f"{path}: neither an EuRoC ASL folder (with mav0/) nor a ROS bag")
+    raise ValueError(f"{path}: neither an EuRoC ASL folder (with mav0/) nor a ROS bag (a directory with "
+                     "metadata.yaml or an .mcap / .db3 file, or a ROS 1 .bag)")
