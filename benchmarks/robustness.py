@@ -11,6 +11,8 @@ motion, rendered images) into ``--cache`` once. Cases:
 * ``SEQ imu_future``: the offset-0 clip with one IMU sample stamped 1000 s in the future at ``--fault-at`` s, fed in
   recorded order (a file reader sorts stamps, so this case drives :class:`~vigs_core.system.stream.OdometryStream`
   sample by sample as the frontend node does; no loop closure);
+* ``SEQ acc_step``: the offset-0 clip with the accelerometer's y and z readings 3 m/s^2 higher from ``--fault-at``
+  s on (a knocked IMU: the estimator must notice, not publish a divergent metric state);
 * ``SEQ blur`` / ``over_exposure`` / ``low_light``: clips rendered with ``vigs sim``'s degradations.
 
 Every other case runs ``vigs run`` (in process: :func:`~vigs_core.system.pipeline.run_pipeline`, loop closure on,
@@ -100,6 +102,19 @@ def imu_gap(at_s: float, length_s: float):
     def edit(lines: list[str]) -> list[str]:
         t0 = int(lines[0].split(",")[0]) + int(at_s * 1e9)
         return [ln for ln in lines if not t0 <= int(ln.split(",")[0]) < t0 + int(length_s * 1e9)]
+    return edit
+
+
+def acc_step(at_s: float, step: float):
+    def edit(lines: list[str]) -> list[str]:
+        t0 = int(lines[0].split(",")[0]) + int(at_s * 1e9)
+        out = []
+        for ln in lines:
+            f = ln.split(",")
+            if int(f[0]) >= t0:
+                f[5], f[6] = repr(float(f[5]) + step), repr(float(f[6]) + step)
+            out.append(",".join(f))
+        return out
     return edit
 
 
@@ -197,6 +212,7 @@ def cases(args) -> list[tuple[str, Path | None, str]]:
         if "faults" in args.cases:
             out.append((f"{short} imu_gap", variant(base, "_imugap", imu_edit=imu_gap(args.fault_at, 2.0)), "run"))
             out.append((f"{short} imu_future", base, "future"))
+            out.append((f"{short} acc_step", variant(base, "_accstep", imu_edit=acc_step(args.fault_at, 3.0)), "run"))
         if "degradations" in args.cases:
             for tag, extra in DEGRADATIONS.items():
                 clip = render(name, 0.0, args.duration, cache, extra, "_" + tag)
