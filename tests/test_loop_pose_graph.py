@@ -127,3 +127,29 @@ def test_scale_prior_keeps_metric_nodes_at_their_scale():
     err_held = (held.poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
     assert err_held < 0.3 * err_before
     assert held.final_cost < held.initial_cost
+
+
+def test_gravity_prior_keeps_roll_and_pitch_while_a_loop_corrects_yaw_and_position():
+    """Metric keyframes (roll and pitch observed by the IMU) with yaw drift, and a loop edge whose relative
+    rotation is 3 deg tilted about x: without the gravity prior the tilt spreads into the nodes' up directions;
+    with it every node keeps its up direction (to 0.1 deg) while the loop still corrects the position drift."""
+    truth = circle_poses(40)
+    poses, i, j, z = odometry_graph(truth, drift_rot=0.01, drift_scale=0.0)
+    li, lj = torch.tensor([39]), torch.tensor([0])
+    tilted = PoseGraph.relative(truth, li, lj) @ sim3_exp(torch.tensor([0, 0, 0, math.radians(3), 0, 0, 0], dtype=D))
+    info = torch.eye(7, dtype=D).expand(40, 7, 7).clone()
+    info[-1] *= 100.0
+    args = (poses, torch.cat((i, li)), torch.cat((j, lj)), torch.cat((z, tilted)), info)
+    up = poses[:, 2, :3] / poses[:, :3, 0].norm(dim=-1, keepdim=True)
+
+    def tilt_deg(result):
+        new = result.poses[:, 2, :3] / result.poses[:, :3, 0].norm(dim=-1, keepdim=True)
+        return torch.rad2deg(torch.acos((new * up).sum(-1).clamp(max=1.0))).max()
+
+    free = optimize_pose_graph(PoseGraph(*args), PoseGraphConfig(huber_delta=0.0))
+    held = optimize_pose_graph(PoseGraph(*args, gravity_information=torch.full((40,), 1e8, dtype=D)),
+                               PoseGraphConfig(huber_delta=0.0))
+    assert tilt_deg(free) > 1.0 and tilt_deg(held) < 0.1, (tilt_deg(free), tilt_deg(held))
+    err_before = (poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
+    assert (held.poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max() < 0.5 * err_before
+    assert held.final_cost < held.initial_cost

@@ -92,6 +92,9 @@ class LoopGraphConfig:
         sigma_metric_log_scale: once the visual-inertial odometry is metric, every keyframe's log scale gets an
             absolute prior of this standard deviation in PGBA (the IMU observes the scale at each keyframe, so
             loops correct drift in position and orientation, not the metric scale; ours).
+        sigma_metric_gravity_rad: once metric, every keyframe's gravity direction (roll and pitch) gets an
+            absolute prior of this standard deviation (rad) at its value before PGBA: the IMU observes them, so a
+            loop corrects position and yaw (VINS-Mono's 4-DoF loop graph, softly) and does not tilt the world.
     """
 
     odometry_neighbours: int = 1
@@ -99,6 +102,7 @@ class LoopGraphConfig:
     sigma_translation_m: float = 0.005
     sigma_log_scale: float = 0.01
     sigma_metric_log_scale: float = 0.002
+    sigma_metric_gravity_rad: float = 0.005
 
 
 @dataclass

@@ -70,8 +70,8 @@ class KeyframePoseGraph:
               metric: bool = False) -> tuple[PoseGraph, list[int]]:
         """The :class:`PoseGraph` at the current poses ``{id: T_WC (4, 4)}`` (every graph id needed) and its
         node ids in order; ``metric``: the keyframes are metric (visual-inertial), so every node's log scale
-        gets an absolute prior of standard deviation ``sigma_metric_log_scale`` (a loop corrects their poses,
-        not their scale).
+        and gravity direction get absolute priors of standard deviations ``sigma_metric_log_scale`` and
+        ``sigma_metric_gravity_rad`` (a loop corrects their positions and yaw, not their scale, roll or pitch).
 
         ``units``: the keyframes' current depth units (product of the loop-correction scales applied so far,
         default 1). A loop edge measured when the units were ``u_a, u_b`` relates points ``X_b -> X_a``; with the
@@ -101,9 +101,12 @@ class KeyframePoseGraph:
         meas = torch.cat([z_odo] + [rescaled(e)[None] for e in self.loops])
         info = torch.cat([self.odometry[e][None] for e in odo] + [e.information.to(F64)[None] for e in self.loops])
         robust = torch.cat((torch.zeros(len(odo), dtype=torch.bool), torch.ones(len(self.loops), dtype=torch.bool)))
-        prior = (torch.full((len(ids),), self.config.sigma_metric_log_scale ** -2, dtype=F64) if metric
-                 else None)
-        return PoseGraph(S, ei, ej, meas, info, robust=robust, fixed=[0], scale_information=prior), ids
+        scale_prior, gravity_prior = None, None
+        if metric:
+            scale_prior = torch.full((len(ids),), self.config.sigma_metric_log_scale ** -2, dtype=F64)
+            gravity_prior = torch.full((len(ids),), self.config.sigma_metric_gravity_rad ** -2, dtype=F64)
+        return PoseGraph(S, ei, ej, meas, info, robust=robust, fixed=[0], scale_information=scale_prior,
+                         gravity_information=gravity_prior), ids
 
 
 @dataclass

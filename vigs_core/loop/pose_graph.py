@@ -8,7 +8,10 @@ with a 7x7 information matrix ``Lambda_ij`` (tangent order ``(rho, phi, sigma)``
 
 with an optional Huber ``rho_h`` on loop edges, plus optional absolute priors on node scales,
 ``sum_k lambda_k (log s_k)^2`` (``s_k`` the scale of ``S_k``: nodes whose scale is observed, e.g. by an IMU, and
-so should not absorb a loop's scale; ``d log s_k / d d_k = e_7``). With left perturbations ``S_k <- Exp(d_k) S_k`` and
+so should not absorb a loop's scale; ``d log s_k / d d_k = e_7``) and on node gravity directions,
+``sum_k mu_k |R_k^T e_z - R0_k^T e_z|^2`` (``R0_k`` the node's rotation before the optimisation: roll and pitch
+observed by an IMU stay, yaw is free as in VINS-Mono's 4-DoF loop graph; with ``R_k <- Exp(phi) R_k`` the
+derivative is ``R_k^T [e_z]_x`` on ``phi``). With left perturbations ``S_k <- Exp(d_k) S_k`` and
 ``E_ij = Z_ij^{-1} S_i^{-1} S_j``:
 
     d r_ij / d d_j =  J_l^{-1}(r_ij) Ad((S_i Z_ij)^{-1}),     d r_ij / d d_i = -d r_ij / d d_j
@@ -27,7 +30,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from vigs_core.geometry import sim3_adjoint, sim3_exp, sim3_inverse, sim3_left_jacobian_inv, sim3_log
+from vigs_core.geometry import hat, sim3_adjoint, sim3_exp, sim3_inverse, sim3_left_jacobian_inv, sim3_log
 
 
 @dataclass
@@ -60,6 +63,8 @@ class PoseGraph:
         fixed: node indices held constant (at least one, to fix the gauge).
         scale_information: (N,) information ``lambda_k`` of the prior ``log s_k = 0`` on each node's scale
             (0: no prior; None: none at all).
+        gravity_information: (N,) information ``mu_k`` (1/rad^2) of the prior holding each node's gravity direction
+            (roll and pitch) where it is (0: no prior; None: none at all).
     """
 
     poses: torch.Tensor
@@ -70,6 +75,7 @@ class PoseGraph:
     robust: torch.Tensor | None = None
     fixed: list[int] = field(default_factory=lambda: [0])
     scale_information: torch.Tensor | None = None
+    gravity_information: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n, e = self.poses.shape[0], self.edges_i.shape[0]
@@ -88,8 +94,10 @@ class PoseGraph:
             raise ValueError("at least one node must be fixed to remove the Sim(3) gauge freedom")
         if self.robust is None:
             self.robust = torch.zeros(e, dtype=torch.bool)
-        if self.scale_information is not None and tuple(self.scale_information.shape) != (n,):
-            raise ValueError(f"scale_information must have shape {(n,)}, got {tuple(self.scale_information.shape)}")
+        for name in ("scale_information", "gravity_information"):
+            value = getattr(self, name)
+            if value is not None and tuple(value.shape) != (n,):
+                raise ValueError(f"{name} must have shape {(n,)}, got {tuple(value.shape)}")
 
     @staticmethod
     def relative(poses: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
@@ -124,6 +132,18 @@ def _scale_prior_cost(graph: PoseGraph, poses: torch.Tensor) -> float:
     return float((graph.scale_information.to(poses) * _log_scales(poses) ** 2).sum())
 
 
+def _gravity_directions(poses: torch.Tensor) -> torch.Tensor:
+    """``R^T e_z`` (N, 3) of similarities (N, 4, 4) ``[s R | t]``: the world's up axis in each node's frame."""
+    return poses[:, 2, :3] / torch.linalg.norm(poses[:, :3, 0], dim=-1, keepdim=True)
+
+
+def _gravity_prior_cost(graph: PoseGraph, poses: torch.Tensor, reference: torch.Tensor) -> float:
+    if graph.gravity_information is None:
+        return 0.0
+    r = _gravity_directions(poses) - reference
+    return float((graph.gravity_information.to(poses) * (r * r).sum(-1)).sum())
+
+
 def _robust_weights(graph: PoseGraph, r: torch.Tensor, huber_delta: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-edge IRLS weights and robust costs: Huber on the whitened norm ``m = sqrt(r^T L r)``."""
     m2 = torch.einsum("ea,eab,eb->e", r, graph.information, r)
@@ -150,10 +170,16 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
     dim = int(free.sum()) * 7
     damping = config.initial_damping
 
+    reference = _gravity_directions(poses)
+
+    def prior_cost(p: torch.Tensor) -> float:
+        return _scale_prior_cost(graph, p) + _gravity_prior_cost(graph, p, reference)
+
     r = _residuals(graph, poses)
     w, c = _robust_weights(graph, r, config.huber_delta)
-    cost = float(c.sum()) + _scale_prior_cost(graph, poses)
+    cost = float(c.sum()) + prior_cost(poses)
     prior_rows = (offset + 6)[free] if graph.scale_information is not None else None
+    e_z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     costs = [cost]
     it = 0
     for it in range(1, config.max_iterations + 1):
@@ -178,6 +204,14 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
             lam = graph.scale_information.to(poses)[free]
             b.index_add_(0, prior_rows, lam * _log_scales(poses[free]))
             triplets.append((prior_rows.numpy(), prior_rows.numpy(), lam.numpy()))
+        if graph.gravity_information is not None:   # rows phi = 3..5 of each free node
+            mu = graph.gravity_information.to(poses)[free]
+            R = poses[free, :3, :3] / torch.linalg.norm(poses[free, :3, 0], dim=-1)[:, None, None]
+            J = R.transpose(-1, -2) @ hat(e_z)
+            rg = _gravity_directions(poses[free]) - reference[free]
+            _scatter_vector(b, offset[free] + 3, mu[:, None] * (J.transpose(-1, -2) @ rg[..., None])[..., 0])
+            rows = offset[free] + 3
+            triplets.append(_block_triplets(rows, rows, mu[:, None, None] * (J.transpose(-1, -2) @ J)))
         h = scipy.sparse.coo_matrix(
             (np.concatenate([t[2] for t in triplets]),
              (np.concatenate([t[0] for t in triplets]), np.concatenate([t[1] for t in triplets]))),
@@ -190,7 +224,7 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
             trial[free] = sim3_exp(step.view(-1, 7)) @ poses[free]
             r_trial = _residuals(graph, trial)
             w_trial, c_trial = _robust_weights(graph, r_trial, config.huber_delta)
-            new_cost = float(c_trial.sum()) + _scale_prior_cost(graph, trial)
+            new_cost = float(c_trial.sum()) + prior_cost(trial)
             if new_cost < cost:
                 poses, r, w = trial, r_trial, w_trial
                 damping = max(damping / 10.0, 1e-12)
@@ -207,18 +241,19 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
 
 
 def _scatter_vector(b: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> None:
-    """``b[rows[e] : rows[e] + 7] += values[e]`` for edges whose node is free (rows >= 0)."""
+    """``b[rows[e] : rows[e] + k] += values[e]`` (values (E, k)) for nodes that are free (rows >= 0)."""
     keep = rows >= 0
-    index = (rows[keep, None] + torch.arange(7)).reshape(-1)
+    index = (rows[keep, None] + torch.arange(values.shape[-1])).reshape(-1)
     b.index_add_(0, index, values[keep].reshape(-1))
 
 
 def _block_triplets(rows: torch.Tensor, cols: torch.Tensor,
                     blocks: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sparse ``(row, col, value)`` entries of ``h[rows[e]:+7, cols[e]:+7] += blocks[e]`` for edges whose two
-    nodes are free (rows, cols >= 0)."""
+    """Sparse ``(row, col, value)`` entries of ``h[rows[e]:+k, cols[e]:+k] += blocks[e]`` (blocks (E, k, k)) for
+    pairs whose two nodes are free (rows, cols >= 0)."""
     keep = (rows >= 0) & (cols >= 0)
-    ar = torch.arange(7)
-    r_idx = (rows[keep, None, None] + ar[None, :, None]).expand(-1, 7, 7)
-    c_idx = (cols[keep, None, None] + ar[None, None, :]).expand(-1, 7, 7)
+    k = blocks.shape[-1]
+    ar = torch.arange(k)
+    r_idx = (rows[keep, None, None] + ar[None, :, None]).expand(-1, k, k)
+    c_idx = (cols[keep, None, None] + ar[None, None, :]).expand(-1, k, k)
     return r_idx.reshape(-1).numpy(), c_idx.reshape(-1).numpy(), blocks[keep].reshape(-1).numpy()
