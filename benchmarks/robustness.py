@@ -26,7 +26,7 @@ mapping off). Columns, on the final body trajectory against the ground truth at 
 * ``bad``: frames published as metric whose error exceeds 0.5 m (the divergence the estimator must not hide).
 
     vigs bench robustness [--sequences ...] [--offset-step 10] [--duration 30] [--cases offsets variants faults
-                          degradations] [--cache out/robustness] [--json OUT]
+                          degradations] [--cache out/robustness] [--params FILE --tag T] [--json OUT]
 """
 from __future__ import annotations
 
@@ -118,21 +118,27 @@ def acc_step(at_s: float, step: float):
     return edit
 
 
-def run_clip(clip: Path, out: Path) -> dict:
-    """``vigs run`` on a clip (mapping off); the report."""
-    from vigs_core.system import PipelineConfig
+def pipeline_config(params: str | None):
+    """The run's settings: defaults or ``--params`` (as ``vigs run --params``), mapping off."""
+    from vigs_core.system import load_config
+
+    cfg = load_config(params)
+    cfg.mapping.enabled = False
+    return cfg
+
+
+def run_clip(clip: Path, out: Path, params: str | None) -> dict:
+    """``vigs run`` on a clip; the report."""
     from vigs_core.system.pipeline import run_pipeline
 
-    cfg = PipelineConfig()
-    cfg.mapping.enabled = False
-    return run_pipeline(clip, cfg, out_dir=out, progress=False)
+    return run_pipeline(clip, pipeline_config(params), out_dir=out, progress=False)
 
 
-def run_future_stamp(clip: Path, out: Path, at_s: float) -> dict:
+def run_future_stamp(clip: Path, out: Path, at_s: float, params: str | None) -> dict:
     """The clip through an OdometryStream, IMU in recorded order with one sample stamped 1000 s ahead at ``at_s``;
     writes trajectory.txt and frame_status.txt as ``vigs run`` does. Also returns when the IMU was back in use."""
     from vigs_core.io import write_frame_status, write_tum
-    from vigs_core.system import OdometryStream, PipelineConfig
+    from vigs_core.system import OdometryStream
     from vigs_core.system.pipeline import poses_to_trajectory
     from vigs_core.system.sources import open_input
 
@@ -141,7 +147,7 @@ def run_future_stamp(clip: Path, out: Path, at_s: float) -> dict:
     bad = int(np.searchsorted(imu.t_ns, imu.t_ns[0] + int(at_s * 1e9)))
     t_rec = imu.t_ns.copy()
     t_rec[bad] += int(1000e9)
-    stream = OdometryStream(seq.camera, PipelineConfig(), seq.T_BS, seq.imu_noise)
+    stream = OdometryStream(seq.camera, pipeline_config(params), seq.T_BS, seq.imu_noise)
     k, used_after = 0, None
     for t_ns, image in seq.frames():
         while k < len(imu) and not stream.imu.covers(t_ns):
@@ -233,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", nargs="+", default=["offsets", "variants", "faults", "degradations"],
                    choices=["offsets", "variants", "faults", "degradations"])
     p.add_argument("--cache", default=str(ROOT / "out" / "robustness"), help="rendered clips and run outputs")
+    p.add_argument("--params", help="settings as for vigs run --params (mapping is off regardless)")
+    p.add_argument("--tag", default="", help="suffix of the run folders (compare settings on the same clips)")
     p.add_argument("--json", help="write the rows here")
     args = p.parse_args(argv)
     import torch
@@ -241,10 +249,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(" ".join(f"{c:>14}" if c == "case" else f"{c:>7}" for c in COLUMNS), flush=True)
     for name, clip, kind in cases(args):
-        out = Path(args.cache) / "runs" / name.replace(" ", "_")
+        out = Path(args.cache) / "runs" / (name.replace(" ", "_") + args.tag)
         t0 = time.perf_counter()
         try:
-            report = run_future_stamp(clip, out, args.fault_at) if kind == "future" else run_clip(clip, out)
+            report = (run_future_stamp(clip, out, args.fault_at, args.params) if kind == "future"
+                      else run_clip(clip, out, args.params))
             row = {"case": name, **score(clip, out, report)}
             if kind == "future":
                 row["imu_back_after_s"] = report["imu_back_after_s"]
