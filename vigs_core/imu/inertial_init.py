@@ -111,6 +111,8 @@ class InertialInit:
         condition_number: of the Jacobi-scaled Hessian of all unknowns.
         chi2_per_dof: final weighted cost over the degrees of freedom.
         trustworthy: both standard deviations under the configured limits.
+        linear_gravity_norm: ``|g|`` of the closed-form initial values (step 2 of the module docstring, which leaves
+            the magnitude free): far from ``gravity``, the poses and the IMU disagree.
         iterations: LM iterations run.
         keyframe_biases: (N, 6) ``(b_g, b_a)`` of every keyframe.
     """
@@ -131,6 +133,7 @@ class InertialInit:
     trustworthy: bool
     iterations: int
     keyframe_biases: torch.Tensor
+    linear_gravity_norm: float = float("nan")
 
 
 def _gyro_bias(pre: Preintegrated, R_b: torch.Tensor, iterations: int = 3) -> torch.Tensor:
@@ -356,4 +359,5 @@ def inertial_only_init(
         bias_gyro=bias[-1, :3], bias_acc=bias[-1, 3:], rotation_corrections=dphi, cov_gravity_scale=cov_gs,
         log_scale_std=log_scale_std, gravity_std_deg=gravity_std_deg, condition_number=cond, chi2_per_dof=chi2_dof,
         trustworthy=bool(trust), iterations=it, keyframe_biases=bias.expand(n, 6).clone(),
+        linear_gravity_norm=float(g_vec.norm()),
     )

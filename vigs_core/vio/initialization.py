@@ -188,6 +188,7 @@ class StagedInitializer:
             return None
         attempt = {"keyframes": K, "scale": result.scale, "log_scale_std": result.log_scale_std,
                    "gravity_std_deg": result.gravity_std_deg, "chi2_per_dof": result.chi2_per_dof,
+                   "linear_gravity_norm": result.linear_gravity_norm,
                    "trustworthy": result.trustworthy}
         self.attempts.append(attempt)
         refusal = self._refusal(result, previous)
