@@ -507,8 +507,8 @@ class DenseOdometry:
         res = bundle_adjust(poses, disps, EdgeSet(ii, jj, target, weight), self.coords, self.intr, mask, cfg,
                             extra=extra, extra_state=extra_state, fixed_disparity=hold, visual_dtype=self._dtype)
         self._after_ba(ids, res)
-        for n, k in enumerate(ids):
-            self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n], res.disps[n]
+        for n, k in enumerate(ids):   # copies: a view would keep the whole window's solution alive per keyframe
+            self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n].clone(), res.disps[n].clone()
         self.ba_calls += 1
         self._toc("ba", t0)
 
@@ -566,7 +566,7 @@ class DenseOdometry:
         t0 = self._tic()
         dt = self._dtype   # the projections' type; the pose stays float64
         pose = align_pose(kf.pose, kf.disp.to(dt), self.coords, self.intr, torch.from_numpy(corr.target),
-                          self._weights(corr), pred, cfg.tracking_iterations, cfg.ba.huber_delta).pose
+                          self._weights(corr), pred, cfg.tracking_iterations, cfg.ba.huber_delta).pose.clone()
         self._toc("tracking", t0)
         f = self.frames[idx]
         f.ref, f.rel, f.odom = kf.id, pose @ se3_inverse(kf.pose), pose
