@@ -65,6 +65,9 @@ def render(name: str, start: float, duration: float, cache: Path, extra: list[st
     out = cache / f"{name}@{start:g}{tag}"
     if (out / "groundtruth_tum.txt").exists():
         return out
+    if out.exists():   # being rendered by another run, or left broken: not ours to remove
+        print(f"  {out.name} exists without ground truth: skipped (remove it to render again)", file=sys.stderr)
+        return None
     cmd = [sys.executable, "-m", "vigs_cli.main", "sim", "--euroc", str(SHARED / name), "--width", "376",
            "--no-depth", "--start", str(start), "--duration", str(duration), "--asl", str(out), "--no-progress",
            *extra]
@@ -203,7 +206,8 @@ def cases(args) -> list[tuple[str, Path | None, str]]:
         short = name.split("_")[0]
         if "offsets" in args.cases:
             last = sequence_length_s(name) - args.duration
-            for start in np.arange(0.0, last + 1e-9, args.offset_step):
+            starts = np.arange(0.0, last + 1e-9, args.offset_step) if args.starts is None else args.starts
+            for start in starts:
                 clip = render(name, float(start), args.duration, cache)
                 if clip is not None:
                     out.append((f"{short}@{start:g}", clip, "run"))
@@ -234,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="vigs bench robustness", description=__doc__.split("\n\n")[0])
     p.add_argument("--sequences", nargs="+", default=list(SEQUENCES))
     p.add_argument("--offset-step", type=float, default=10.0, help="start offsets every this many seconds")
+    p.add_argument("--starts", type=float, nargs="+", help="only these start offsets (s)")
     p.add_argument("--duration", type=float, default=30.0, help="clip length (s)")
     p.add_argument("--fault-at", type=float, default=15.0, help="IMU faults this long after the clip's start (s)")
     p.add_argument("--cases", nargs="+", default=["offsets", "variants", "faults", "degradations"],
