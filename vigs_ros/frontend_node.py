@@ -389,6 +389,8 @@ class FrontendNode(VigsNode):
         try:
             out = self.engine.track(t_ns, image, encoding, lambda T_wc: self.publish_pose(t_ns, T_wc, arrived))
         except Exception as exc:  # a core failure on one frame must not take the graph down: report it
+            if not self.context.ok():   # a signal shut the node down while it published: close() saves the run
+                return
             self.status.warn("core_error", f"the odometry core failed on the frame at {t_ns} ns: "
                                            f"{type(exc).__name__}: {exc}")
             if self.status.counters["warn.core_error"] == 1:

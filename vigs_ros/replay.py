@@ -261,7 +261,8 @@ class BagPlayer:
                 if delay > 0:
                     time.sleep(delay)
             if self.clock_pub is not None and t_ns != last_t:
-                self.clock_pub.publish(Clock(clock=ns_to_stamp(types, t_ns)))
+                if not self._publish(self.clock_pub, Clock(clock=ns_to_stamp(types, t_ns))):
+                    break
             last_t = t_ns
             if self.is_ros1:
                 msg = ros1_to_ros2(self.reader.deserialize(raw, conn.msgtype), conn.msgtype, self.ros2_store)
@@ -271,13 +272,25 @@ class BagPlayer:
             out_topic = cfg.remap.get(conn.topic, conn.topic)
             if gated:
                 waiting = (t_ns, self._acks)
-            self.publishers[out_topic].publish(data)
+            if not self._publish(self.publishers[out_topic], data):
+                break
             self.stats.published[out_topic] = self.stats.published.get(out_topic, 0) + 1
         if waiting is not None:
             self._wait_ack(waiting[1])
         self.stats.wall_s = time.monotonic() - wall0
         self.stats.bag_s = ((last_t - t_first) * 1e-9) if last_t is not None else 0.0
         return self.stats
+
+    def _publish(self, publisher, msg) -> bool:
+        """Publish; False when a signal shut the context down meanwhile (rclpy then raises RCLError: the replay
+        ends as interrupted, without a traceback), otherwise errors are raised."""
+        try:
+            publisher.publish(msg)
+            return True
+        except Exception:   # noqa: BLE001 - only a shut-down context is expected here
+            if self.context.ok():
+                raise
+            return False
 
     def _wait_ack(self, acks_before: int) -> None:
         with self._ack_cond:

@@ -76,8 +76,11 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:  # a node's callback or constructor failed: report it and exit non-zero
-        traceback.print_exc()
-        code = 1
+        if context.ok():
+            traceback.print_exc()
+            code = 1
+        # else a signal shut the context down while the executor was taking a message (rclpy then raises
+        # RCLError / RuntimeError from the wait set): an ordinary shutdown
     finally:
         for node in nodes:
             try:
