@@ -166,3 +166,20 @@ def test_densification_adds_gaussians_exactly_where_the_map_is_thin():
     assert int(new.sum()) == int(want.sum())
     assert torch.equal(got, want)
     assert 0.05 * int(grid.sum()) < int(want.sum()) < 0.8 * int(grid.sum())  # the views partly overlap
+
+
+def test_drain_at_shutdown_inserts_every_queued_keyframe_without_refinement():
+    """At shutdown the queued keyframes are inserted from their depth without optimisation steps: every one of
+    them anchors Gaussians and the map covers a view between them, at a fraction of the refined insertion's cost; a zero
+    time budget leaves the queue as it was."""
+    angles = [0.0, 0.3, 0.6, 0.9]
+    mapper = _mapper(iterations=20)
+    _feed(mapper, angles)
+    assert mapper.drain(0.0) == len(angles)
+    assert mapper.drain(60.0) == 0 and mapper.stats.keyframes == len(angles)
+    assert set(mapper.map.anchor_ids.tolist()) == set(range(len(angles)))
+    assert float((mapper.render(orbit_pose(0.45)).alpha > 0.5).float().mean()) > 0.9   # it covers the view
+    refined = _mapper(iterations=20)
+    _feed(refined, angles)
+    refined.process_pending()
+    assert mapper.stats.mapping_seconds < 0.5 * refined.stats.mapping_seconds

@@ -255,10 +255,11 @@ def test_load_frames_reads_a_whole_input_at_the_processing_size(sequence, tmp_pa
     assert (f.camera.width, f.camera.height) == (W // 2, H // 2)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum):
+@pytest.mark.parametrize("signum, mapping", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum, mapping):
     """Ctrl-C or SIGTERM mid-run (loop closure in its child process): the run stops at a frame boundary, writes
-    trajectory, report (marked interrupted) and exits 128 + the signal; its loop-closure child is gone."""
+    trajectory, report (marked interrupted) and, with mapping, the map of every keyframe (the mapper's backlog
+    inserted without refinement), and exits 128 + the signal; its loop-closure child is gone."""
     import psutil
 
     from ros_bags import SAMPLE_BAG
@@ -266,7 +267,7 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     cmd = [sys.executable, "-c", "import signal, sys; from vigs_cli.main import main; "
            "signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit(main())",
            "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
-    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n    mapping: {enabled: false}\n")
+    (tmp_path / "p.yaml").write_text(f"frontend:\n  ros__parameters:\n    mapping: {{enabled: {str(mapping).lower()}}}\n")
     proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     seen = ""
     while not re.search(r"\b(\d{3})/441", seen):   # the progress bar passed 100 frames
@@ -280,6 +281,11 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["interrupted"] == signal.Signals(signum).name and 100 <= report["frames"] < 441
     assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 0
+    if mapping:
+        from vigs_core.mapping.ply import read_ply_vertices
+
+        assert report["mapping"]["interrupted"] and report["mapping"]["keyframes_mapped"] == report["keyframes"]
+        assert len(read_ply_vertices(tmp_path / "map.ply")) == report["mapping"]["gaussians"] > 1000
     # multiprocessing's resource tracker ends when it reads EOF from the exited parent: give it a moment
     _, alive = psutil.wait_procs(children, timeout=15)
     assert children and not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive)

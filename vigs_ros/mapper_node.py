@@ -22,7 +22,6 @@ Topics (names are parameters; see params/mapper.yaml):
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -164,17 +163,17 @@ class MapperNode(VigsNode):
         return path
 
     def close(self) -> None:
-        """Stop the worker, apply what is queued (within ``shutdown_drain_s``), save the map. Reports go to
+        """Stop the worker, apply what is queued (within ``shutdown_drain_s``; :meth:`GaussianMapper.drain`), save
+        the map. Reports go to
         stderr: the context (and so /rosout) may already be shut down."""
         if self.mapper is None:
             return
         self.mapper.stop()
-        deadline = time.monotonic() + float(self.p["shutdown_drain_s"])
-        while self.mapper.pending() and time.monotonic() < deadline:
-            self.mapper.step()
-        if self.mapper.pending():
-            print(f"[mapper] {self.mapper.pending()} mapping events were not applied before shutdown",
-                  file=sys.stderr)
+        queued = self.mapper.pending()
+        left = self.mapper.drain(float(self.p["shutdown_drain_s"]))
+        if queued:
+            print(f"[mapper] at shutdown {queued - left} queued mapping events applied (keyframes inserted without "
+                  f"refinement)" + (f", {left} not applied in shutdown_drain_s" if left else ""), file=sys.stderr)
         if self.p["save_on_shutdown"]:
             path = self.save_map()
             print(f"[mapper] map saved: {path} ({len(self.mapper.map)} Gaussians)", file=sys.stderr)

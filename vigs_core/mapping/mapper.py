@@ -300,6 +300,26 @@ class GaussianMapper:
             count += 1
         return count
 
+    def drain(self, seconds: float) -> int:
+        """At shutdown (worker stopped): apply the queued events within ``seconds``, each queued keyframe inserted
+        from its depth without optimisation steps (one render for the densification mask instead of
+        ``iterations`` steps), so the saved map holds every keyframe received, unrefined where there was no
+        time to refine it. Returns how many events are left."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            try:
+                event = self._events.get_nowait()
+            except queue.Empty:
+                break
+            try:
+                if event[0] == "keyframe":
+                    self._integrate(event[1], optimise=False)
+                else:
+                    self._apply(event)
+            finally:
+                self._events.task_done()
+        return self.pending()
+
     def run_async(self) -> None:
         """Start a worker thread that applies queued events as they arrive (idempotent)."""
         if self._worker is not None and self._worker.is_alive():
@@ -439,7 +459,7 @@ class GaussianMapper:
         self._dirty = self._dirty[keep]
         self.stats.pruned += int(drop.sum())
 
-    def _integrate(self, kf: Keyframe) -> None:
+    def _integrate(self, kf: Keyframe, optimise: bool = True) -> None:
         c = self.config
         t0 = time.perf_counter()
         with self._lock:
@@ -456,7 +476,7 @@ class GaussianMapper:
             )  # fmt: skip
             self._next_id += len(new)
             self._append(new)
-        for kf_step in self._schedule(kf.id):
+        for kf_step in self._schedule(kf.id) if optimise else ():
             with self._lock:
                 self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
         with self._lock:

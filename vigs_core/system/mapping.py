@@ -126,18 +126,20 @@ class OnlineMapping:
             if k in self._sent:
                 self._sent[k] = self._current(k)
 
-    def finish(self, drain: bool = True) -> None:
+    def finish(self, drain: bool = True, interrupted_drain_s: float = 10.0) -> None:
         """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain
-        (``drain`` False, an interrupted run: stop it after the event it is applying)."""
-        if drain:
-            self._send_pose_updates()
-            for k in sorted(self.odometry.keyframes):
-                if k not in self._sent:
-                    self._send_keyframe(k)
+        (``drain`` False, an interrupted run: stop it after the event it is applying and insert what is queued
+        without refinement, for at most ``interrupted_drain_s``: :meth:`GaussianMapper.drain`)."""
+        self._send_pose_updates()
+        for k in sorted(self.odometry.keyframes):
+            if k not in self._sent:
+                self._send_keyframe(k)
         t0 = time.perf_counter()
         if drain:
             self.mapper.wait_idle()
         self.mapper.stop()
+        if not drain:
+            self.mapper.drain(interrupted_drain_s)
         self.wait_seconds = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ end of run

@@ -311,7 +311,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
         mapping.finish(drain=not cut_short)
         report["mapping"] = mapping.evaluate(t_ns, T_WC) if not cut_short else {
-            "gaussians": len(mapping.mapper.map), "interrupted": True}
+            "gaussians": len(mapping.mapper.map), "keyframes_mapped": mapping.mapper.stats.keyframes,
+            "interrupted": True}
     metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
     if seq.groundtruth is not None and len(t_ns):
         frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
