@@ -95,6 +95,7 @@ class LoopGraphConfig:
         sigma_metric_gravity_rad: once metric, every keyframe's gravity direction (roll and pitch) gets an
             absolute prior of this standard deviation (rad) at its value before PGBA: the IMU observes them, so a
             loop corrects position and yaw (VINS-Mono's 4-DoF loop graph, softly) and does not tilt the world.
+            0 (default): no such prior; measured no better (docs/benchmarks.md, "Estimator robustness").
     """
 
     odometry_neighbours: int = 1
@@ -102,7 +103,7 @@ class LoopGraphConfig:
     sigma_translation_m: float = 0.005
     sigma_log_scale: float = 0.01
     sigma_metric_log_scale: float = 0.002
-    sigma_metric_gravity_rad: float = 0.005
+    sigma_metric_gravity_rad: float = 0.0
 
 
 @dataclass

@@ -70,8 +70,8 @@ class KeyframePoseGraph:
               metric: bool = False) -> tuple[PoseGraph, list[int]]:
         """The :class:`PoseGraph` at the current poses ``{id: T_WC (4, 4)}`` (every graph id needed) and its
         node ids in order; ``metric``: the keyframes are metric (visual-inertial), so every node's log scale
-        and gravity direction get absolute priors of standard deviations ``sigma_metric_log_scale`` and
-        ``sigma_metric_gravity_rad`` (a loop corrects their positions and yaw, not their scale, roll or pitch).
+        gets an absolute prior of standard deviation ``sigma_metric_log_scale`` (a loop corrects their poses, not
+        their scale) and, when ``sigma_metric_gravity_rad`` > 0, its gravity direction one of that deviation.
 
         ``units``: the keyframes' current depth units (product of the loop-correction scales applied so far,
         default 1). A loop edge measured when the units were ``u_a, u_b`` relates points ``X_b -> X_a``; with the
@@ -104,6 +104,7 @@ class KeyframePoseGraph:
         scale_prior, gravity_prior = None, None
         if metric:
             scale_prior = torch.full((len(ids),), self.config.sigma_metric_log_scale ** -2, dtype=F64)
+        if metric and self.config.sigma_metric_gravity_rad > 0:
             gravity_prior = torch.full((len(ids),), self.config.sigma_metric_gravity_rad ** -2, dtype=F64)
         return PoseGraph(S, ei, ej, meas, info, robust=robust, fixed=[0], scale_information=scale_prior,
                          gravity_information=gravity_prior), ids
