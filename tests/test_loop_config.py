@@ -23,5 +23,5 @@ def test_pipeline_yaml_overrides_loop_settings(tmp_path):
     assert cfg.loop.verification.inlier_px == 3.0
     assert cfg.loop.detection.max_mean_flow_px == 22.0   # untouched keys keep their defaults
     path.write_text("frontend:\n  ros__parameters:\n    loop:\n      detection:\n        gap: 40\n")
-    with pytest.raises(KeyError, match="min_keyframe_gap"):
+    with pytest.raises(ValueError, match=r"params.yaml: unknown parameter loop.detection.'gap'.*min_keyframe_gap"):
         load_config(path)

@@ -303,3 +303,36 @@ def test_inputs_without_imu_or_recognisable_layout_are_named(sequence, tmp_path,
     (tmp_path / "empty").mkdir()
     assert vigs_main(["run", str(tmp_path / "empty"), "--no-progress"]) == 2
     assert "neither an EuRoC ASL folder (with mav0/) nor a ROS bag" in capsys.readouterr().err
+
+
+def test_vigs_run_killed_mid_run_leaves_its_last_checkpoint(tmp_path):
+    """SIGKILL (no chance to write anything) mid-run: the outputs of the last checkpoint are there and load (the
+    pose files and a partial report, each replaced atomically), and the loop-closure child does not outlive its
+    parent."""
+    import psutil
+
+    from ros_bags import SAMPLE_BAG
+
+    from vigs_core.io import read_frame_status
+
+    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n    mapping: {enabled: false}\n"
+                                     "    checkpoint_period_s: 0.5\n")
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "run", str(SAMPLE_BAG), "--out", str(tmp_path),
+                             "--params", str(tmp_path / "p.yaml")], cwd=ROOT, stderr=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    seen = ""
+    while not re.search(r"\b(2\d\d)/441", seen):   # the progress bar passed 200 frames
+        chunk = proc.stderr.read(64)
+        assert chunk, f"vigs run ended before 200 frames: {seen[-2000:]}"
+        seen += chunk
+    children = psutil.Process(proc.pid).children(recursive=True)
+    proc.kill()
+    proc.communicate(timeout=60)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["partial"] and 100 < report["frames"] < 441
+    assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 100
+    assert len(read_frame_status(tmp_path / "frame_status.txt")) == report["frames"]
+    assert len(read_tum(tmp_path / "keyframes.txt")) == report["keyframes"]
+    assert not list(tmp_path.glob("*.tmp"))
+    _, alive = psutil.wait_procs(children, timeout=15)
+    assert not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive), alive

@@ -34,6 +34,9 @@ class PipelineConfig:
         image_topic: bag image topic (None: found by message type).
         max_bad_frames: frames that cannot be read or decoded are skipped with a warning; more than this many
             end the run (its outputs are written) with an error.
+        checkpoint_period_s: while running, the pose outputs and a partial report.json are rewritten (atomically)
+            every this many seconds of wall time, so a killed run leaves what it had (0: only at the end).
+        map_checkpoint_period_s: the same for map.ply (slower to write; 0: only at the end).
         odometry: the frontend's settings.
         imu: visual-inertial settings (:class:`vigs_core.vio.VioConfig`); with ``imu.enabled`` (default) and an
             input that has IMU data the odometry is visual-inertial (metric, gravity-aligned once initialised).
@@ -51,6 +54,8 @@ class PipelineConfig:
     frame_stride: int = 1
     image_topic: str | None = None
     max_bad_frames: int = 20
+    checkpoint_period_s: float = 30.0
+    map_checkpoint_period_s: float = 120.0
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     imu: VioConfig = field(default_factory=VioConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)

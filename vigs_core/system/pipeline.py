@@ -32,7 +32,10 @@ rejected, PGBA runs and seconds). With ``mapping.enabled`` the Gaussian mapper
 layout) and ``map.json`` (keyframes) are written and report.json adds ``mapping`` (Gaussians, keyframes mapped,
 seconds, PSNR/SSIM on non-keyframe frames at the final poses, before and after the optional final refinement).
 
-Ctrl-C (SIGINT) or SIGTERM stops the run at the next frame boundary; everything computed so far is written (the
+While the run goes on, the pose outputs and a partial ``report.json`` (``partial: true``) are rewritten every
+``checkpoint_period_s`` and ``map.ply`` every ``map_checkpoint_period_s`` (:class:`Checkpoints`; every file is
+replaced atomically), so a killed process leaves its last checkpoint. Ctrl-C (SIGINT) or SIGTERM stops the run at
+the next frame boundary; everything computed so far is written (the
 map without waiting for the mapper's backlog and without render quality) and ``report.json`` says
 ``interrupted`` (the signal's name); a second signal interrupts at once. An error during the run is written out
 the same way (``report.json`` ``error``) and then raised. A frame that cannot be read or decoded is skipped with
@@ -41,13 +44,16 @@ a warning (``bad_frames``); more than ``max_bad_frames`` of them is such an erro
 from __future__ import annotations
 
 import json
+import os
 import resource
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -199,6 +205,66 @@ class StopRequest:
         self._previous = {}
 
 
+def _replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write(tmp)`` then rename over ``path``: a reader (or a crash) never sees a half-written file."""
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def write_pose_outputs(out: Path, odo, T_BS: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Write ``trajectory.txt``, ``trajectory_cam.txt``, ``odometry.txt``, ``keyframes.txt`` and (with the IMU)
+    ``frame_status.txt`` of the odometry's current state into ``out``, each atomically; returns the stamps and
+    ``T_WC`` (N, 4, 4) of the final frame poses."""
+    from vigs_core.io import write_frame_status, write_tum
+
+    def body(T_cw: torch.Tensor) -> np.ndarray:
+        return (np.linalg.inv(T_cw.numpy()) @ np.linalg.inv(T_BS)) if len(T_cw) else np.zeros((0, 4, 4))
+
+    t_ns, T_cw = odo.final_frame_poses()
+    T_WC = np.linalg.inv(T_cw.numpy()) if len(t_ns) else np.zeros((0, 4, 4))
+    to, T_odo = odo.odometry_poses()
+    tk, T_kf = odo.keyframe_poses()
+    for name, (t, T) in (("trajectory", (t_ns, body(T_cw))), ("trajectory_cam", (t_ns, T_WC)),
+                         ("odometry", (to, body(T_odo))), ("keyframes", (tk, body(T_kf)))):
+        _replace_atomically(out / f"{name}.txt", lambda path, t=t, T=T: write_tum(path, poses_to_trajectory(t, T)))
+    if isinstance(odo, VisualInertialOdometry):
+        _replace_atomically(out / "frame_status.txt", lambda path: write_frame_status(path, odo.frame_status))
+    return t_ns, T_WC
+
+
+class Checkpoints:
+    """Outputs kept current while the run goes on (so a killed process or a power loss leaves the run so far):
+    every ``period_s`` of wall time the pose outputs and a partial report (``partial: true``), every
+    ``map_period_s`` the map as well; 0 switches either off."""
+
+    def __init__(self, out: Path | None, period_s: float, map_period_s: float) -> None:
+        self.out, self.period_s, self.map_period_s = out, period_s, map_period_s
+        now = time.monotonic()
+        self._next, self._next_map = now + period_s, now + map_period_s
+        self.written = 0
+
+    def step(self, odo, T_BS: np.ndarray, frames: int, mapping) -> None:
+        now = time.monotonic()
+        if self.out is None:
+            return
+        if self.period_s > 0 and now >= self._next:
+            self._next = now + self.period_s
+            self.out.mkdir(parents=True, exist_ok=True)
+            t_ns, _ = write_pose_outputs(self.out, odo, T_BS)
+            partial = {"partial": True, "frames": frames, "frames_posed": int(len(t_ns)),
+                       "keyframes": len(odo.keyframes)}
+            if isinstance(odo, VisualInertialOdometry):
+                partial["vio"] = {k: v for k, v in odo.report().items() if k in ("stage", "metric", "frame_status",
+                                                                                  "failures")}
+            _replace_atomically(self.out / "report.json", lambda path: path.write_text(json.dumps(partial, indent=2)))
+            self.written += 1
+        if mapping is not None and self.map_period_s > 0 and now >= self._next_map:
+            self._next_map = now + self.map_period_s
+            self.out.mkdir(parents=True, exist_ok=True)
+            mapping.save(self.out / "map.ply")
+
+
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
                  progress: bool = True, sequence: InputSequence | None = None,
                  only_ns: set[int] | None = None) -> dict:
@@ -238,6 +304,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         raw if isinstance(raw, BadFrame) else stream.prepare(raw)), count=total * cfg.frame_stride)
     t_loop = time.perf_counter()
     stop = StopRequest()
+    checkpoints = Checkpoints(None if out_dir is None else Path(out_dir), cfg.checkpoint_period_s,
+                              cfg.map_checkpoint_period_s)
     bad_frames: list[dict] = []
     failure: Exception | None = None
     try:
@@ -268,6 +336,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             if loop is not None:
                 loop.step()
             n += 1
+            checkpoints.step(odo, seq.T_BS, n, mapping)
             if bar is not None:
                 bar.update(1)
                 if n % 20 == 0:
@@ -287,16 +356,14 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     loop_s = time.perf_counter() - t_loop
     t_ns, T_cw = odo.final_frame_poses()
     T_WC = np.linalg.inv(T_cw.numpy()) if len(t_ns) else np.zeros((0, 4, 4))
-    T_WB = T_WC @ np.linalg.inv(seq.T_BS)
+    T_WB = T_WC @ np.linalg.inv(seq.T_BS)   # scored below; write_pose_outputs writes the same poses
     to, T_odo = odo.odometry_poses()
     T_WB_odo = (np.linalg.inv(T_odo.numpy()) @ np.linalg.inv(seq.T_BS)) if len(to) else np.zeros((0, 4, 4))
-    tk, T_kf = odo.keyframe_poses()
-    T_WB_kf = (np.linalg.inv(T_kf.numpy()) @ np.linalg.inv(seq.T_BS)) if len(tk) else np.zeros((0, 4, 4))
     timings = {"input_wait": t_wait, "input_reader_thread": reader.reader_seconds, **dict(odo.timings)}
     report = {
         "input": str(input_path), "sequence": seq.name,
         "resolution": [cam.width, cam.height], "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
-        "frames": n, "frames_skipped": len(stream.skipped_ns), "frames_posed": int(len(t_ns)), "keyframes": int(len(tk)), "ba_calls": odo.ba_calls,
+        "frames": n, "frames_skipped": len(stream.skipped_ns), "frames_posed": int(len(t_ns)), "keyframes": len(odo.keyframes), "ba_calls": odo.ba_calls,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
@@ -332,22 +399,15 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
     report["total_s"] = round(time.perf_counter() - t_start, 3)
     if out_dir is not None:
-        from vigs_core.io import write_frame_status, write_tum
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        write_tum(out / "trajectory.txt", poses_to_trajectory(t_ns, T_WB))
-        write_tum(out / "trajectory_cam.txt", poses_to_trajectory(t_ns, T_WC))
-        write_tum(out / "odometry.txt", poses_to_trajectory(to, T_WB_odo))
-        write_tum(out / "keyframes.txt", poses_to_trajectory(tk, T_WB_kf))
-        if isinstance(odo, VisualInertialOdometry):
-            write_frame_status(out / "frame_status.txt", odo.frame_status)
+        write_pose_outputs(out, odo, seq.T_BS)
         if velocities is not None:
             np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
                        header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
         if mapping is not None:
             mapping.save(out / "map.ply")
-        (out / "report.json").write_text(json.dumps(report, indent=2))
+        _replace_atomically(out / "report.json", lambda path: path.write_text(json.dumps(report, indent=2)))
     if failure is not None:
         raise failure
     return report
