@@ -110,9 +110,9 @@ class VioConfig:
             well-conditioned solution can still be wrong; two successive windows agreeing rarely are).
         init_agreement_gravity_deg: the same for the angle between their gravity directions (deg).
         max_scale_drift: the scale check (at the first keyframe ``metric_hold_delay_s`` after the alignment,
-            retried at later keyframes while its solution is not trustworthy) solves the inertial-only problem
-            again over the keyframes since the alignment; when its ``|log scale|`` exceeds this the alignment did
-            not hold: failure, back to vision-only, initialise again.
+            retried at up to ``inertial_init_keyframes`` later keyframes while its solution is not trustworthy)
+            solves the inertial-only problem again over the keyframes since the alignment; when its
+            ``|log scale|`` exceeds this the alignment did not hold: failure, back to vision-only, initialise again.
         still_max_flow_px: before the front end initialises, a frame whose mean flow from the first frame is
             below this (input pixels) is held at the first frame's pose (see :mod:`vigs_core.vio.odometry`).
     """

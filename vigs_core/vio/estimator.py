@@ -319,7 +319,8 @@ class VisualInertialEstimator:
         (:func:`~vigs_core.imu.inertial_init.inertial_only_init`: gravity direction, scale, velocities and biases
         with the poses fixed) over the keyframes since the map became metric (at most ``3 inertial_init_keyframes``
         of them; ids (K,), stamps (K,) ns, world->camera poses (K, 4, 4) of ALL keyframes), i.e. seconds of joint
-        VI-BA poses instead of the vision-only stage's. An untrustworthy solution is retried at the next keyframe.
+        VI-BA poses instead of the vision-only stage's. An untrustworthy solution is retried at the next keyframes
+        (at most ``inertial_init_keyframes`` tries; then the check is given up until the next alignment).
         A trustworthy one whose ``|log scale|`` exceeds ``max_scale_drift`` is a failure (:meth:`fail`). Otherwise,
         with ``scale_refinement`` (ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C), the alignment the caller must
         apply to the whole map (velocities here are already updated; the biases stay the VI-BA's), else None."""
@@ -336,7 +337,10 @@ class VisualInertialEstimator:
         self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "scale_check",
                                    "scale": res.scale, "log_scale_std": res.log_scale_std,
                                    "trustworthy": res.trustworthy})
-        if not res.trustworthy:
+        if not res.trustworthy:   # retried at the next keyframes, at most inertial_init_keyframes times
+            tries = sum(h["stage"] == "scale_check" for h in self.scale_history
+                        if h["t_ns"] >= self.metric_since_ns)
+            self.scale_checked = tries >= c.inertial_init_keyframes
             return None
         self.scale_checked = True
         if abs(res.log_scale) > c.max_scale_drift:
