@@ -238,3 +238,38 @@ def test_launch_interrupted_mid_replay_saves_the_run_cleanly(tmp_path, signum):
     assert 100 < n == report["frames_posed"] < 441
     assert len(read_frame_status(tmp_path / "frame_status.txt")) == report["frames_tracked"]
     assert len(read_ply_vertices(tmp_path / "map.ply")) > 1000
+
+
+def test_a_killed_frontend_leaves_its_last_checkpoint(tmp_path):
+    """The frontend node SIGKILLed mid-replay (no chance to save): its last checkpoint (pose files and a partial
+    frontend_report.json, written every ``checkpoint_period_s``) is there and loads; the launcher reports the
+    dead node with a non-zero exit and shuts the rest down."""
+    import psutil
+    from ros_bags import SAMPLE_BAG
+
+    from vigs_core.io import read_frame_status, read_tum
+
+    params = tmp_path / "p.yaml"
+    params.write_text(f"frontend:\n  ros__parameters:\n    output_dir: {tmp_path}\n    checkpoint_period_s: 1.0\n"
+                      f"    mapping: {{enabled: false}}\n")
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(SAMPLE_BAG), "--fast",
+                             "--params", str(params), "--nodes", "imu_preintegration", "frontend"], cwd=ROOT,
+                            env=isolated_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = []
+    for line in proc.stdout:
+        log.append(line)
+        if "IMU initialised" in line:
+            break
+    else:
+        raise AssertionError("the graph ended before the IMU initialised:\n" + "".join(log[-30:]))
+    time.sleep(2.0)   # at least one checkpoint after the initialisation
+    frontend = [p for p in psutil.Process(proc.pid).children(recursive=True)
+                if "frontend_node" in " ".join(p.cmdline())]
+    assert len(frontend) == 1
+    frontend[0].kill()
+    rest, _ = proc.communicate(timeout=120)
+    assert proc.returncode != 0, "".join(log) + rest
+    report = json.loads((tmp_path / "frontend_report.json").read_text())
+    assert report["partial"] and report["frames_posed"] == len(read_tum(tmp_path / "trajectory.txt")) > 100
+    assert len(read_frame_status(tmp_path / "frame_status.txt")) == report["frames"]
+    assert not list(tmp_path.glob("*.tmp"))

@@ -267,7 +267,8 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     cmd = [sys.executable, "-c", "import signal, sys; from vigs_cli.main import main; "
            "signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit(main())",
            "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
-    (tmp_path / "p.yaml").write_text(f"frontend:\n  ros__parameters:\n    mapping: {{enabled: {str(mapping).lower()}}}\n")
+    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n"
+                                     f"    mapping: {{enabled: {str(mapping).lower()}}}\n")
     proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     seen = ""
     while not re.search(r"\b(\d{3})/441", seen):   # the progress bar passed 100 frames

@@ -50,7 +50,8 @@ No queue grows without bound: images wait at most ``image_queue_depth`` deep for
   ``status_topic`` (diagnostics; ``estimator`` is the estimator's status, an error while it is lost after a
   detected failure, naming the failure, until it is metric again).
 
-Outputs at shutdown (``output_dir``; empty: none), as ``vigs run`` writes them: ``trajectory.txt`` (TUM, body
+Outputs (``output_dir``; empty: none), kept current every ``checkpoint_period_s`` while running (the pose files
+and a partial ``frontend_report.json``, replaced atomically) and written at shutdown as ``vigs run`` writes them: ``trajectory.txt`` (TUM, body
 pose ``T_WB = T_WC T_body_camera^-1`` of every posed frame relative to the final keyframe poses, i.e. after
 BA, IMU initialisation and loop corrections), ``odometry.txt`` (each frame's pose as first estimated,
 re-expressed in the final world at IMU initialisation, like ``vigs run``'s), ``keyframes.txt`` (final
@@ -94,6 +95,7 @@ from msg_adapters.vigs import (
 )
 from vigs_core.camera import CameraModel
 from vigs_core.system import PipelineConfig
+from vigs_core.system.pipeline import Checkpoints, write_pose_outputs
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
 from vigs_ros.diagnostics import StatusReporter
@@ -208,6 +210,9 @@ class FrontendNode(VigsNode):
         self.latency_s: deque[float] = deque(maxlen=10000)   # image arrival -> odometry publish (wall s)
         self.queue_max = {"imu_samples": 0, "frames": 0}     # deepest queues seen by the tracking thread
         self.image_gaps = StampGaps()
+        # the pose outputs kept current on the tracking thread (the only one that changes the odometry)
+        self.checkpoints = Checkpoints(pathlib.Path(self.p["output_dir"]) if self.p["output_dir"] else None,
+                                       float(self.config.checkpoint_period_s), 0.0, "frontend_report.json")
         self.worker = threading.Thread(target=self.work, name="frontend-tracking", daemon=True)
 
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
@@ -402,6 +407,7 @@ class FrontendNode(VigsNode):
             return
         self.processed_ns.append(t_ns)
         self.status.count("frames_tracked")
+        self.checkpoints.step(self.engine.odometry, self.T_bc, len(self.processed_ns), None)
         if out.rotation_error > 1e-6:
             self.status.warn("core_pose", f"the odometry core returned rotations off SO(3) by {out.rotation_error:.2e}"
                                           " (projected onto SO(3) for output)")
@@ -574,25 +580,16 @@ class FrontendNode(VigsNode):
 
 
 def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Path) -> dict:
-    """Write the engine's final frame poses (``trajectory.txt``), causal poses (``odometry.txt``) and keyframe
-    poses (``keyframes.txt``) as TUM body poses ``T_WB = T_WC T_bc^-1``; returns their counts."""
-    from vigs_core.io import write_frame_status, write_tum
-    from vigs_core.system.pipeline import poses_to_trajectory
-
+    """Write the engine's pose outputs as ``vigs run`` does (:func:`vigs_core.system.pipeline.write_pose_outputs`:
+    final frame poses, causal poses, keyframes, frame statuses); returns their counts for the report."""
     odo = engine.odometry
-    counts = {}
-    for name, (t_ns, T_cw) in (("trajectory", odo.final_frame_poses()), ("odometry", odo.odometry_poses()),
-                               ("keyframes", odo.keyframe_poses())):
-        T_cw = T_cw.numpy() if len(t_ns) else np.zeros((0, 4, 4))
-        T_wb = np.linalg.inv(T_cw) @ np.linalg.inv(T_bc)  # as vigs run computes it
-        write_tum(out / f"{name}.txt", poses_to_trajectory(t_ns, T_wb))
-        counts[f"{name}_poses"] = int(len(t_ns))
+    out.mkdir(parents=True, exist_ok=True)
+    t_ns, _ = write_pose_outputs(out, odo, T_bc)
+    counts = {"frames_posed": int(len(t_ns)), "odometry_poses": int(len(odo.odometry_poses()[0])),
+              "keyframes": len(odo.keyframes)}
     if hasattr(odo, "frame_status"):
-        write_frame_status(out / "frame_status.txt", odo.frame_status)
         counts["frame_status"] = odo.report()["frame_status"]
         counts["failures"] = odo.vio.failures
-    counts["frames_posed"] = counts.pop("trajectory_poses")
-    counts["keyframes"] = counts.pop("keyframes_poses")
     return counts
 
 

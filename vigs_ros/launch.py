@@ -3,8 +3,8 @@ process (``composed``), optionally with a bag replay feeding them.
 
 Every node process gets ``--ros-args --params-file`` for the shipped ``params/*.yaml`` (``ros.yaml`` first)
 and then the user's files (later files override earlier ones; each is checked first against the nodes' declared
-parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), plus ``-p use_sim_time:=true`` when a bag is
-replayed (nodes run on the bag's ``/clock``).
+parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), plus
+``-p use_sim_time:=true`` when a bag is replayed (nodes run on the bag's ``/clock``).
 
 Supervision: children run in their own sessions, so a terminal's Ctrl-C reaches only the launcher, which
 forwards SIGINT/SIGTERM as SIGINT to every child (nodes close cleanly: the mapper saves its map), waits up to

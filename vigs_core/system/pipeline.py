@@ -235,11 +235,13 @@ def write_pose_outputs(out: Path, odo, T_BS: np.ndarray) -> tuple[np.ndarray, np
 
 class Checkpoints:
     """Outputs kept current while the run goes on (so a killed process or a power loss leaves the run so far):
-    every ``period_s`` of wall time the pose outputs and a partial report (``partial: true``), every
-    ``map_period_s`` the map as well; 0 switches either off."""
+    every ``period_s`` of wall time the pose outputs and a partial report (``partial: true``, as ``report_name``),
+    every ``map_period_s`` the map as well; 0 switches either off. Call :meth:`step` from the thread that
+    changes the odometry."""
 
-    def __init__(self, out: Path | None, period_s: float, map_period_s: float) -> None:
-        self.out, self.period_s, self.map_period_s = out, period_s, map_period_s
+    def __init__(self, out: Path | None, period_s: float, map_period_s: float,
+                 report_name: str = "report.json") -> None:
+        self.out, self.period_s, self.map_period_s, self.report_name = out, period_s, map_period_s, report_name
         now = time.monotonic()
         self._next, self._next_map = now + period_s, now + map_period_s
         self.written = 0
@@ -257,7 +259,8 @@ class Checkpoints:
             if isinstance(odo, VisualInertialOdometry):
                 partial["vio"] = {k: v for k, v in odo.report().items() if k in ("stage", "metric", "frame_status",
                                                                                   "failures")}
-            _replace_atomically(self.out / "report.json", lambda path: path.write_text(json.dumps(partial, indent=2)))
+            _replace_atomically(self.out / self.report_name,
+                                lambda path: path.write_text(json.dumps(partial, indent=2)))
             self.written += 1
         if mapping is not None and self.map_period_s > 0 and now >= self._next_map:
             self._next_map = now + self.map_period_s
