@@ -241,13 +241,15 @@ def test_a_divergent_metric_state_is_a_failure_and_initialisation_restarts_after
 
 def test_initialisation_refuses_implausible_and_degenerate_solutions():
     """Constructed degenerate initialisations are refused (a "not yet"), never accepted: an accelerometer reading
-    1 m/s^2 off is an implausible bias against a 0.5 m/s^2 limit, 3 m/s^2 off an inconsistent fit; constant velocity
+    1 m/s^2 off is an implausible bias against a 0.5 m/s^2 limit, 3 m/s^2 off an inconsistent fit, 25% too large an
+    implausible gravity; constant velocity
     along a line leaves the scale unobservable; keyframe poses whose scale jumps between windows never agree."""
     sc = make_scenario(n=24, spacing_s=0.3, seed=0, imu_noise=True)
     T_cw = _visual_frame(sc, 0.5)
-    for offset, config, refusal in ((1.0, VioConfig(max_bias_acc=0.5), "implausible: speed"),
-                                    (3.0, VioConfig(), "not trustworthy")):   # chi2 / dof 7 widens the covariance
-        biased = type(sc.imu)(sc.imu.t_ns, sc.imu.gyro, sc.imu.acc + np.array([0.0, 0.0, offset]))
+    for gain, offset, config, refusal in ((1.0, 1.0, VioConfig(max_bias_acc=0.5), "implausible: speed"),
+                                          (1.0, 3.0, VioConfig(), "not trustworthy"),   # chi2 / dof 7
+                                          (1.25, 0.0, VioConfig(), "implausible gravity")):   # a wrong scale factor
+        biased = type(sc.imu)(sc.imu.t_ns, sc.imu.gyro, gain * sc.imu.acc + np.array([0.0, 0.0, offset]))
         init = StagedInitializer(config, biased, NOISE, T_CB)
         assert all(init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) is None for K in range(3, 25))
         assert init.stage == Stage.VISION_ONLY and len(init.attempts) == 5

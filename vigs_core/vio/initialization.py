@@ -10,7 +10,8 @@ parameters, paper values 10 and 20):
    ``R_wg``, the per-keyframe velocities, the bias and the log-scale ``sigma``. The solution is refused, and
    the stage retried at the next keyframe, unless it is trustworthy (standard deviations under the configured
    limits), physically plausible (finite; keyframe speeds and bias norms under ``max_speed``,
-   ``max_bias_gyro``, ``max_bias_acc``) and agrees with the previous keyframe's attempt (log-scale and gravity
+   ``max_bias_gyro``, ``max_bias_acc``; the closed-form solution's gravity magnitude within
+   ``max_init_gravity_error``) and agrees with the previous keyframe's attempt (log-scale and gravity
    direction within ``init_agreement_log_scale`` and ``init_agreement_gravity_deg``). A singular problem is a
    "not yet" like any other refusal: it also breaks the agreement chain.
 3. ``VISUAL_INERTIAL``: the map is rescaled and gravity-aligned (:class:`WorldAlignment`) and every later BA is
@@ -210,12 +211,15 @@ class StagedInitializer:
         """Why an inertial-only solution is not accepted (module docstring), or None; a trustworthy and
         plausible solution becomes the candidate the next attempt must agree with."""
         c = self.config
-        if not result.trustworthy:
-            return "not trustworthy"
         values = torch.cat((result.velocities.reshape(-1), result.keyframe_biases.reshape(-1),
-                            torch.tensor([result.log_scale], dtype=torch.float64)))
+                            torch.tensor([result.log_scale, result.linear_gravity_norm], dtype=torch.float64)))
         if not bool(torch.isfinite(values).all()):
             return "not finite"
+        if not abs(result.linear_gravity_norm / c.gravity - 1.0) <= c.max_init_gravity_error:
+            return (f"implausible gravity: the closed-form solution has |g| {result.linear_gravity_norm:.3g} m/s^2 "
+                    f"(expected {c.gravity:g} within {100 * c.max_init_gravity_error:g}%)")
+        if not result.trustworthy:
+            return "not trustworthy"
         speed = float(result.velocities.norm(dim=-1).max())
         b_g = float(result.keyframe_biases[:, :3].norm(dim=-1).max())
         b_a = float(result.keyframe_biases[:, 3:].norm(dim=-1).max())
