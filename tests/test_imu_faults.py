@@ -101,3 +101,27 @@ def test_an_accelerometer_bias_step_is_detected_and_nothing_divergent_is_publish
     assert "accelerometer bias" in failure["reason"] and 0 < failure["t_ns"] - t0 < 1e9, odo.vio.failures
     assert not stream.metric and odo.report()["frame_status"]["lost"] > 100
     assert all(status == "lost" for t, status in odo.frame_status.items() if t > failure["t_ns"])
+
+
+def test_the_frontend_engine_reports_the_failure_once_and_the_status_it_leaves(clean):
+    """The frontend node's engine on the bias step: the frame at which the estimator fails carries the failure's
+    reason (the node turns it into a /vigs/status error), frames before it are metric (``tracking``), every frame
+    after it is ``lost`` (the node then publishes /odometry with ``odometry_unknown_std``)."""
+    from vigs_ros.frontend_engine import FrontendEngine
+
+    imu, _ = clean
+    t0 = int(imu.t_ns[0]) + int(GAP_START_S * 1e9)
+    acc = imu.acc.copy()
+    acc[imu.t_ns >= t0] += np.array([0.0, 3.0, 3.0])
+    seq = open_input(SAMPLE_BAG)
+    engine = FrontendEngine(seq.camera, PipelineConfig(), seq.T_BS, seq.imu_noise)
+    outs, k = [], 0
+    for t_ns, image in seq.frames():
+        while k < len(imu) and not engine.stream.imu.covers(t_ns):
+            engine.stream.add_imu(int(imu.t_ns[k]), imu.gyro[k], acc[k])
+            k += 1
+        outs.append(engine.track(t_ns, image, "mono8"))
+    failed = [n for n, o in enumerate(outs) if o.failure is not None]
+    assert len(failed) == 1 and "accelerometer bias" in outs[failed[0]].failure
+    assert outs[failed[0] - 1].status == "tracking" and outs[failed[0] - 1].inertial_initialized
+    assert {o.status for o in outs[failed[0]:]} == {"lost"} and not outs[-1].inertial_initialized

@@ -100,12 +100,12 @@ class FrontendEngine:
         grey = self.stream.prepare(to_mono8(image, encoding))
         out = FrameOutput(int(t_ns), None)
         notify = None if on_pose is None else (lambda T_cw: on_pose(self._rigid_inverse(T_cw.numpy(), out)))
-        failures = self._failures()
+        failures_before = len(self._failures())
         T_cw = self.stream.add_prepared(int(t_ns), grey, notify)
         if T_cw is not None:
             out.T_wc = self._rigid_inverse(T_cw.numpy(), out)
         out.status = self.status
-        if len(self._failures()) > len(failures):
+        if len(self._failures()) > failures_before:
             out.failure = self._failures()[-1]["reason"]
         metric = self.stream.metric
         out.realigned, out.inertial_initialized = metric and not self._metric, metric
