@@ -203,6 +203,20 @@ def test_launch_rejects_bad_parameter_files_naming_file_and_key(tmp_path):
             raise AssertionError(f"{text!r} passed the check")
 
 
+def launch_until_imu_initialised(bag, params, *extra: str) -> tuple[subprocess.Popen, list[str]]:
+    """``vigs launch --bag BAG --fast --params PARAMS`` running, read until the frontend says the IMU initialised;
+    the process and the lines read."""
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(bag), "--fast",
+                             "--params", str(params), *extra], cwd=ROOT, env=isolated_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    log = []
+    for line in proc.stdout:
+        log.append(line)
+        if "IMU initialised" in line:
+            return proc, log
+    raise AssertionError("the graph ended before the IMU initialised:\n" + "".join(log[-30:]))
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_launch_interrupted_mid_replay_saves_the_run_cleanly(tmp_path, signum):
     """Ctrl-C or SIGTERM on ``vigs launch --bag --fast`` once the IMU has initialised (mid-replay): every node
@@ -217,16 +231,7 @@ def test_launch_interrupted_mid_replay_saves_the_run_cleanly(tmp_path, signum):
     params = tmp_path / "p.yaml"
     params.write_text(f"frontend:\n  ros__parameters:\n    output_dir: {tmp_path}\n"
                       f"mapper:\n  ros__parameters:\n    map_path: {tmp_path / 'map.ply'}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(SAMPLE_BAG), "--fast",
-                             "--params", str(params)], cwd=ROOT, env=isolated_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    log = []
-    for line in proc.stdout:
-        log.append(line)
-        if "IMU initialised" in line:
-            break
-    else:
-        raise AssertionError("the graph ended before the IMU initialised:\n" + "".join(log[-30:]))
+    proc, log = launch_until_imu_initialised(SAMPLE_BAG, params)
     proc.send_signal(signum)
     rest, _ = proc.communicate(timeout=120)
     out = "".join(log) + rest
@@ -252,16 +257,7 @@ def test_a_killed_frontend_leaves_its_last_checkpoint(tmp_path):
     params = tmp_path / "p.yaml"
     params.write_text(f"frontend:\n  ros__parameters:\n    output_dir: {tmp_path}\n    checkpoint_period_s: 1.0\n"
                       f"    mapping: {{enabled: false}}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(SAMPLE_BAG), "--fast",
-                             "--params", str(params), "--nodes", "imu_preintegration", "frontend"], cwd=ROOT,
-                            env=isolated_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    log = []
-    for line in proc.stdout:
-        log.append(line)
-        if "IMU initialised" in line:
-            break
-    else:
-        raise AssertionError("the graph ended before the IMU initialised:\n" + "".join(log[-30:]))
+    proc, log = launch_until_imu_initialised(SAMPLE_BAG, params, "--nodes", "imu_preintegration", "frontend")
     time.sleep(2.0)   # at least one checkpoint after the initialisation
     frontend = [p for p in psutil.Process(proc.pid).children(recursive=True)
                 if "frontend_node" in " ".join(p.cmdline())]

@@ -255,6 +255,18 @@ def test_load_frames_reads_a_whole_input_at_the_processing_size(sequence, tmp_pa
     assert (f.camera.width, f.camera.height) == (W // 2, H // 2)
 
 
+def run_until_frame(cmd: list[str], frames: int) -> tuple[subprocess.Popen, str]:
+    """``cmd`` (a ``vigs run`` with its progress bar on the sample's 441 frames) started and read until the bar
+    passed ``frames`` frames; the process and its stderr so far."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    seen = ""
+    while not any(int(n) >= frames for n in re.findall(r"\b(\d+)/441", seen)):
+        chunk = proc.stderr.read(64)
+        assert chunk, f"vigs run ended before {frames} frames: {seen[-2000:]}"
+        seen += chunk
+    return proc, seen
+
+
 @pytest.mark.parametrize("signum, mapping", [(signal.SIGINT, True), (signal.SIGTERM, False)])
 def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum, mapping):
     """Ctrl-C or SIGTERM mid-run (loop closure in its child process): the run stops at a frame boundary, writes
@@ -269,12 +281,7 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
            "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
     (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n"
                                      f"    mapping: {{enabled: {str(mapping).lower()}}}\n")
-    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    seen = ""
-    while not re.search(r"\b(\d{3})/441", seen):   # the progress bar passed 100 frames
-        chunk = proc.stderr.read(64)
-        assert chunk, f"vigs run ended before 100 frames: {seen[-2000:]}"
-        seen += chunk
+    proc, seen = run_until_frame(cmd, 100)
     children = psutil.Process(proc.pid).children(recursive=True)
     proc.send_signal(signum)
     out, err = proc.communicate(timeout=120)
@@ -318,14 +325,8 @@ def test_vigs_run_killed_mid_run_leaves_its_last_checkpoint(tmp_path):
 
     (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n    mapping: {enabled: false}\n"
                                      "    checkpoint_period_s: 0.5\n")
-    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "run", str(SAMPLE_BAG), "--out", str(tmp_path),
-                             "--params", str(tmp_path / "p.yaml")], cwd=ROOT, stderr=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
-    seen = ""
-    while not re.search(r"\b(2\d\d)/441", seen):   # the progress bar passed 200 frames
-        chunk = proc.stderr.read(64)
-        assert chunk, f"vigs run ended before 200 frames: {seen[-2000:]}"
-        seen += chunk
+    proc, _ = run_until_frame([sys.executable, "-m", "vigs_cli.main", "run", str(SAMPLE_BAG), "--out", str(tmp_path),
+                               "--params", str(tmp_path / "p.yaml")], 200)
     children = psutil.Process(proc.pid).children(recursive=True)
     proc.kill()
     proc.communicate(timeout=60)
