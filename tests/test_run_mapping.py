@@ -155,3 +155,24 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch():
     assert online.pose_update_batches == 1
     online.finish()
     assert sorted(online._sent) == [0, 1] and online.mapper.stats.keyframes == 2
+
+
+def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
+    """A long run keeps at most ``eval_max_frames`` evaluation images, spread over the whole run (reservoir
+    sampling), not every ``eval_stride``-th frame of it; a short run keeps them all, as before."""
+    from types import SimpleNamespace
+
+    odo = SimpleNamespace(keyframes={})
+    online = OnlineMapping(MappingConfig(eval_stride=2, eval_max_frames=20), odo, CAM)
+    try:
+        image = np.zeros((H, W), np.uint8)
+        for _ in range(30):
+            online.step(image)
+        assert sorted(online._eval_images) == list(range(0, 30, 2))
+        for _ in range(3970):
+            online.step(image)
+        kept = sorted(online._eval_images)
+        assert len(kept) == 20 and all(k % 2 == 0 for k in kept)
+        assert kept[0] < 1000 and kept[-1] > 3000   # spread over the run, not its first or last frames
+    finally:
+        online.mapper.stop()

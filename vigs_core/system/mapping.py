@@ -24,6 +24,7 @@ colour refinement and evaluates again.
 """
 from __future__ import annotations
 
+import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +56,9 @@ class MappingConfig:
         pose_tolerance: keyframe pose change (translation in world units plus rotation in rad, norm of the
             SE(3) log) or depth-scale change (|log c|) above which the mapper gets the new pose.
         eval_stride: every n-th input frame that is not a keyframe is rendered for PSNR/SSIM (0: none).
+        eval_max_frames: at most this many of those are kept (a uniform random sample of them, reservoir
+            sampling with a fixed seed), so a long run's evaluation images and time stay bounded (every 5th
+            frame of an hour at 20 Hz would be 650 MB of images and an hour of rendering at the end).
         final_refine_iterations: colour-refinement steps after the run (0: none); metrics are reported
             before and after.
     """
@@ -66,10 +70,12 @@ class MappingConfig:
     max_depth_ratio: float = 5.0
     pose_tolerance: float = 1e-4
     eval_stride: int = 5
+    eval_max_frames: int = 100
     final_refine_iterations: int = 0
 
     def __post_init__(self) -> None:
-        if self.keyframe_delay < 0 or self.eval_stride < 0 or self.final_refine_iterations < 0:
+        if self.keyframe_delay < 0 or self.eval_stride < 0 or self.final_refine_iterations < 0 or \
+                self.eval_max_frames < 0:
             raise ValueError(
                 f"mapping: need keyframe_delay, eval_stride, final_refine_iterations >= 0; got "
                 f"{self.keyframe_delay}, {self.eval_stride}, {self.final_refine_iterations}"
@@ -99,6 +105,8 @@ class OnlineMapping:
         self._sent: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> (T_WC, disp) as last sent
         self._seen: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> the frontend's pose, disp then
         self._eval_images: dict[int, np.ndarray] = {}                   # frame index -> processed image
+        self._eval_offered = 0                                          # frames offered to the sample so far
+        self._eval_rng = random.Random(0)
         self._frame_index = 0
         self.pose_update_batches = 0
         self.wait_seconds = 0.0
@@ -110,7 +118,7 @@ class OnlineMapping:
         mapped keyframes, then keyframes that are old enough."""
         stride = self.config.eval_stride
         if stride and self._frame_index % stride == 0:
-            self._eval_images[self._frame_index] = image
+            self._sample_for_evaluation(image)
         self._frame_index += 1
         self._send_pose_updates()
         ids = sorted(self.odometry.keyframes)
@@ -143,6 +151,17 @@ class OnlineMapping:
         self.wait_seconds = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ end of run
+    def _sample_for_evaluation(self, image: np.ndarray) -> None:
+        """Reservoir sampling (Vitter's algorithm R): each offered frame ends up kept with the same probability."""
+        self._eval_offered += 1
+        if len(self._eval_images) < self.config.eval_max_frames:
+            self._eval_images[self._frame_index] = image
+            return
+        j = self._eval_rng.randrange(self._eval_offered)
+        if j < len(self._eval_images):
+            del self._eval_images[list(self._eval_images)[j]]
+            self._eval_images[self._frame_index] = image
+
     def evaluate(self, t_ns: np.ndarray, T_WC: np.ndarray) -> dict:
         """Mapping numbers for report.json, with render quality at the final frame poses ``T_WC`` (N, 4, 4) of
         the frames at times ``t_ns`` (N,) ns (call after :meth:`finish`)."""
