@@ -11,7 +11,7 @@ loop closure on:
 Every ``--sample-s`` seconds the RSS of the run's processes (by role: the run or its node name, the loop-closure
 worker) and the frontend's keyframe count (from the progress of ``vigs run``; the graph's is not sampled) are
 recorded. Printed per process: peak RSS, RSS at the end of the warm-up (``--warmup-s`` of wall time) and at the
-end, the slope after the warm-up (least squares, MB per minute of wall time), and for ``vigs run`` the slope per
+end (the last two samples, which can catch a process exiting, are left out), the slope after the warm-up (least squares, MB per minute of wall time), and for ``vigs run`` the slope per
 keyframe; then the output sizes.
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph] [--json OUT]
@@ -77,6 +77,7 @@ def sample(proc: subprocess.Popen, top: str, period_s: float, progress: dict) ->
 def summarise(series: dict[str, list], warmup_s: float) -> dict[str, dict]:
     rows = {}
     for name, points in series.items():
+        points = points[:-2] if len(points) > 8 else points   # the last samples catch the process exiting
         a = np.array([(t, mb) for t, mb, _ in points])
         late = a[:, 0] >= warmup_s
         row = {"peak_mb": round(float(a[:, 1].max()), 1), "end_mb": round(float(a[-1, 1]), 1),
