@@ -14,7 +14,8 @@ recorded. Printed per process: peak RSS, RSS at the end of the warm-up (``--warm
 end (the last two samples, which can catch a process exiting, are left out), the slope after the warm-up (least squares, MB per minute of wall time), and for ``vigs run`` the slope per
 keyframe; then the output sizes.
 
-    vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph] [--json OUT]
+    vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph]
+                    [--params FILE] [--json OUT]
 """
 from __future__ import annotations
 
@@ -93,9 +94,11 @@ def summarise(series: dict[str, list], warmup_s: float) -> dict[str, dict]:
     return rows
 
 
-def run_vigs_run(bag: Path, out: Path, period_s: float) -> dict[str, list]:
+def run_vigs_run(bag: Path, out: Path, period_s: float, params: str | None = None) -> dict[str, list]:
     out.mkdir(parents=True, exist_ok=True)
-    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "run", str(bag), "--out", str(out)], cwd=ROOT,
+    extra = ["--params", params] if params else []
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "run", str(bag), "--out", str(out), *extra],
+                            cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     progress: dict = {}
 
@@ -138,12 +141,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sample-s", type=float, default=10.0, help="RSS sampling period (s)")
     p.add_argument("--cache", default=str(ROOT / "out" / "soak"), help="the rendered bag and the run outputs")
     p.add_argument("--no-graph", action="store_true", help="only vigs run")
+    p.add_argument("--params", help="vigs run's --params (the graph runs the shipped parameters)")
     p.add_argument("--json", help="write the results here")
     args = p.parse_args(argv)
     cache = Path(args.cache)
     bag = render(args.duration, cache)
     results = {}
-    runs = [("vigs run", run_vigs_run)] + ([] if args.no_graph else [("graph", run_graph)])
+    runs = [("vigs run", lambda b, o, s: run_vigs_run(b, o, s, args.params))]
+    runs += [] if args.no_graph else [("graph", run_graph)]
     for name, runner in runs:
         out = Path(tempfile.mkdtemp(prefix=name.replace(" ", "_") + "_", dir=cache))
         t0 = time.monotonic()
