@@ -331,10 +331,11 @@ def test_vigs_run_killed_mid_run_leaves_its_last_checkpoint(tmp_path):
     proc.kill()
     proc.communicate(timeout=60)
     report = json.loads((tmp_path / "report.json").read_text())
-    assert report["partial"] and 100 < report["frames"] < 441
-    assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 100
-    assert len(read_frame_status(tmp_path / "frame_status.txt")) == report["frames"]
-    assert len(read_tum(tmp_path / "keyframes.txt")) == report["keyframes"]
+    # each file is whole; a kill between a checkpoint's pose files and its report leaves the poses one ahead
+    assert report["partial"] and 100 < report["frames"] < 441 and report["frames_posed"] > 100
+    assert 0 <= len(read_tum(tmp_path / "trajectory.txt")) - report["frames_posed"] <= 40
+    assert 0 <= len(read_frame_status(tmp_path / "frame_status.txt")) - report["frames"] <= 40
+    assert 0 <= len(read_tum(tmp_path / "keyframes.txt")) - report["keyframes"] <= 10
     assert not list(tmp_path.glob("*.tmp"))
     _, alive = psutil.wait_procs(children, timeout=15)
     assert not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive), alive
