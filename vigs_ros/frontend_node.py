@@ -95,7 +95,7 @@ from msg_adapters.vigs import (
 )
 from vigs_core.camera import CameraModel
 from vigs_core.system import PipelineConfig
-from vigs_core.system.pipeline import Checkpoints, write_pose_outputs
+from vigs_core.system.pipeline import Checkpoints, pose_outputs, write_pose_outputs
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
 from vigs_ros.diagnostics import StatusReporter
@@ -584,8 +584,9 @@ def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Pat
     final frame poses, causal poses, keyframes, frame statuses); returns their counts for the report."""
     odo = engine.odometry
     out.mkdir(parents=True, exist_ok=True)
-    t_ns, _ = write_pose_outputs(out, odo, T_bc)
-    counts = {"frames_posed": int(len(t_ns)), "odometry_poses": int(len(odo.odometry_poses()[0])),
+    poses = pose_outputs(odo, T_bc)
+    write_pose_outputs(out, odo, poses)
+    counts = {"frames_posed": len(poses["trajectory"][0]), "odometry_poses": len(poses["odometry"][0]),
               "keyframes": len(odo.keyframes)}
     if hasattr(odo, "frame_status"):
         counts["frame_status"] = odo.report()["frame_status"]

@@ -53,9 +53,9 @@ def bag_input_remaps(bag: str | Path) -> tuple[list[str], list[str]]:
     of each type): an Image topic -> ``/image`` (else a CompressedImage topic -> ``/image`` with
     ``image_transport:=compressed`` for the frontend), CameraInfo -> ``/camera_info``, Imu -> ``/imu``.
     Returns ``(replay remaps "FROM:=TO", extra node --ros-args)``."""
-    from vigs_ros.replay import open_reader
+    from vigs_core.io.rosbag import open_bag_reader
 
-    reader = open_reader(bag)
+    reader = open_bag_reader(bag)
     try:
         by_type: dict[str, str] = {}
         for conn in sorted(reader.connections, key=lambda c: c.topic):

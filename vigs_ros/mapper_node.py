@@ -164,8 +164,7 @@ class MapperNode(VigsNode):
 
     def close(self) -> None:
         """Stop the worker, apply what is queued (within ``shutdown_drain_s``; :meth:`GaussianMapper.drain`), save
-        the map. Reports go to
-        stderr: the context (and so /rosout) may already be shut down."""
+        the map. Reports go to stderr: the context (and so /rosout) may already be shut down."""
         if self.mapper is None:
             return
         self.mapper.stop()

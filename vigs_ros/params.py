@@ -16,8 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
 
 
@@ -114,10 +112,10 @@ def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
     Raises:
         ValueError: the file is not a mapping of ``<node>: {ros__parameters: {...}}``.
     """
+    from vigs_core.system.config import read_params_yaml
+
     path = Path(path)
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got {type(data).__name__}")
+    data = read_params_yaml(path)
     out: dict[str, Any] = {}
     for key in ("/**", node_name, "/" + node_name):
         section = data.get(key)
@@ -137,13 +135,10 @@ def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) 
     known node sections (or ``/**``), only declared keys (a ``/**`` key: declared by some node) and values of the
     declared type (a float takes an int). ValueError naming the file, the node, the key and what was expected:
     rcl would ignore an unknown key and a wrong type would stop the node with a traceback."""
+    from vigs_core.system.config import read_params_yaml
+
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as err:
-        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got {type(data).__name__}")
+    data = read_params_yaml(path)
     for node, section in data.items():
         name = str(node).lstrip("/")
         if node != "/**" and name not in node_specs:
@@ -167,21 +162,18 @@ def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) 
 
 
 def _type_problem(default: Any, value: Any) -> str | None:
-    """Why ``value`` cannot set a parameter declared with ``default``, or None."""
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if isinstance(default, bool):
-        ok, expected = isinstance(value, bool), "bool"
-    elif isinstance(default, int):
-        ok, expected = number and isinstance(value, int), "int"
-    elif isinstance(default, float):
-        ok, expected = number, "float"
-    elif isinstance(default, str):
-        ok, expected = isinstance(value, str), "str"
-    elif isinstance(default, (list, tuple)):
-        ok, expected = isinstance(value, list) and len(value) > 0, "a non-empty list"
-    else:
-        return None
-    return None if ok else f"expected {expected}, got {value!r} ({type(value).__name__})"
+    """Why ``value`` cannot set a parameter declared with ``default`` (the dataclass type check,
+    :func:`vigs_core.system.config.checked_value`, on the default's type; a list needs a non-empty list), or None."""
+    from vigs_core.system.config import ParameterTypeError, checked_value
+
+    if isinstance(default, (list, tuple)):
+        ok = isinstance(value, list) and len(value) > 0
+        return None if ok else f"expected a non-empty list, got {value!r} ({type(value).__name__})"
+    try:
+        checked_value(value, type(default), "")
+    except ParameterTypeError as err:
+        return err.problem
+    return None
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:

@@ -24,7 +24,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 from vigs_ros.qos import replay_qos
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -92,15 +91,6 @@ def parse_remaps(items: list[str]) -> dict[str, str]:
     return out
 
 
-def open_reader(path: str | Path):
-    """An opened reader over a ROS 2 bag directory, a bare ``.mcap`` / ``.db3`` file or a ROS 1 ``.bag`` (the
-    readable part of an MCAP file cut short, with a warning: :func:`vigs_core.io.rosbag.open_bag_reader`);
-    ValueError when the path is none of those."""
-    from vigs_core.io.rosbag import open_bag_reader
-
-    return open_bag_reader(path)
-
-
 def _message_class(typename: str):
     package, kind, name = typename.split("/")
     return getattr(importlib.import_module(f"{package}.{kind}"), name)
@@ -137,10 +127,12 @@ class BagPlayer:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
 
+        from vigs_core.io.rosbag import open_bag_reader
+
         self.config = config or ReplayConfig()
         if not self.config.fast and self.config.rate <= 0:
             raise ValueError(f"replay rate must be > 0, got {self.config.rate}")
-        self.reader = open_reader(bag)
+        self.reader = open_bag_reader(bag)
         self.is_ros1 = not self.reader.is2
         if self.is_ros1:
             from rosbags.typesys import Stores, get_typestore

@@ -4,7 +4,7 @@ interrupted), which ``rosbags`` refuses because the file's end (footer, summary)
 :class:`SalvagedMcap` streams the file's records with the ``mcap`` package's stream reader (schemas, channels and
 messages, chunks decompressed) up to the first damaged or missing record, and offers the subset of ``rosbags``'
 ``AnyReader`` interface the project uses (``connections``, ``messages``, ``deserialize``, ``start_time``,
-``end_time``, ``is2``, ``open``, ``close``), deserialising CDR with the ROS 2 type store.
+``end_time``, ``is2``, ``close``), deserialising CDR with the ROS 2 type store.
 """
 from __future__ import annotations
 
@@ -92,9 +92,6 @@ class SalvagedMcap:
 
     def deserialize(self, raw: bytes, msgtype: str):
         return self.typestore.deserialize_cdr(raw, msgtype)
-
-    def open(self) -> None:
-        """Nothing to open (the reader reads the file on each pass); for ``AnyReader``'s interface."""
 
     def close(self) -> None:
         """Nothing held open between passes."""

@@ -62,10 +62,18 @@ class PipelineConfig:
     mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
+class ParameterTypeError(ValueError):
+    """A parameter value of the wrong type; ``problem`` says what was expected and what came."""
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"parameter {name}: {problem}")
+        self.problem = problem
+
+
 def checked_value(value: Any, kind: Any, name: str) -> Any:
     """``value`` as a field of declared type ``kind`` (bool, int, float, str, ``X | None``, ``tuple[...]``, ...);
     ValueError naming ``name``, the expected type and the value otherwise. An int is a float; a list is a
-    tuple of the declared length."""
+    tuple of the declared length. Raises :class:`ParameterTypeError`."""
     args = typing.get_args(kind)
     if type(kind) is types.UnionType or typing.get_origin(kind) is typing.Union:
         if value is None and type(None) in args:
@@ -96,7 +104,7 @@ def checked_value(value: Any, kind: Any, name: str) -> Any:
             value = tuple(checked_value(v, a, f"{name}[{i}]") for i, (v, a) in enumerate(zip(value, items)))
     if not ok:
         expected = getattr(kind, "__name__", str(kind))
-        raise ValueError(f"parameter {name}: expected {expected}, got {value!r} ({type(value).__name__})")
+        raise ParameterTypeError(name, f"expected {expected}, got {value!r} ({type(value).__name__})")
     return value
 
 
@@ -122,18 +130,26 @@ def apply_overrides(obj: Any, values: dict, where: str = "") -> Any:
     return obj
 
 
+def read_params_yaml(path: str | Path) -> dict:
+    """The top-level mapping of a ROS 2 parameter file (``<node>: {ros__parameters: ...}``); ValueError naming the
+    file for malformed YAML or another top level."""
+    try:
+        content = yaml.safe_load(Path(path).read_text()) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
+    if not isinstance(content, dict):
+        raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got "
+                         f"{type(content).__name__}")
+    return content
+
+
 def load_config(path: str | Path | None = None, node: str = NODE_NAME) -> PipelineConfig:
     """Defaults, overridden by ``<node>: ros__parameters:`` of the YAML file ``path`` when given. Malformed YAML,
     a missing section, unknown keys and wrong types raise ``ValueError`` naming the file and the key."""
     cfg = PipelineConfig()
     if path is None:
         return cfg
-    try:
-        content = yaml.safe_load(Path(path).read_text()) or {}
-    except yaml.YAMLError as err:
-        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
-    if not isinstance(content, dict):
-        raise ValueError(f"{path}: expected a mapping of node names, got {type(content).__name__}")
+    content = read_params_yaml(path)
     section = content.get(node, {}).get("ros__parameters") if isinstance(content.get(node), dict) else None
     if not isinstance(section, dict):
         raise ValueError(f"{path}: no '{node}: ros__parameters:' mapping (found top-level keys {sorted(content)})")

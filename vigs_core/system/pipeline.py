@@ -212,25 +212,30 @@ def _replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     os.replace(tmp, path)
 
 
-def write_pose_outputs(out: Path, odo, T_BS: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Write ``trajectory.txt``, ``trajectory_cam.txt``, ``odometry.txt``, ``keyframes.txt`` and (with the IMU)
-    ``frame_status.txt`` of the odometry's current state into ``out``, each atomically; returns the stamps and
-    ``T_WC`` (N, 4, 4) of the final frame poses."""
-    from vigs_core.io import write_frame_status, write_tum
-
-    def body(T_cw: torch.Tensor) -> np.ndarray:
-        return (np.linalg.inv(T_cw.numpy()) @ np.linalg.inv(T_BS)) if len(T_cw) else np.zeros((0, 4, 4))
+def pose_outputs(odo, T_BS: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The odometry's current poses as written: ``{file stem: (stamps (N,) ns, poses (N, 4, 4))}`` for
+    ``trajectory`` (final frame poses, body ``T_WB = T_WC inv(T_BS)``), ``trajectory_cam`` (the same, camera
+    ``T_WC``), ``odometry`` (causal, body) and ``keyframes`` (body)."""
+    def world_from(T_cw: torch.Tensor) -> np.ndarray:
+        return np.linalg.inv(T_cw.numpy()) if len(T_cw) else np.zeros((0, 4, 4))
 
     t_ns, T_cw = odo.final_frame_poses()
-    T_WC = np.linalg.inv(T_cw.numpy()) if len(t_ns) else np.zeros((0, 4, 4))
     to, T_odo = odo.odometry_poses()
     tk, T_kf = odo.keyframe_poses()
-    for name, (t, T) in (("trajectory", (t_ns, body(T_cw))), ("trajectory_cam", (t_ns, T_WC)),
-                         ("odometry", (to, body(T_odo))), ("keyframes", (tk, body(T_kf)))):
+    T_WC, T_SB = world_from(T_cw), np.linalg.inv(T_BS)
+    return {"trajectory": (t_ns, T_WC @ T_SB), "trajectory_cam": (t_ns, T_WC),
+            "odometry": (to, world_from(T_odo) @ T_SB), "keyframes": (tk, world_from(T_kf) @ T_SB)}
+
+
+def write_pose_outputs(out: Path, odo, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """Write ``poses`` (:func:`pose_outputs`) as TUM files and, with the IMU, ``frame_status.txt`` into ``out``,
+    each atomically."""
+    from vigs_core.io import write_frame_status, write_tum
+
+    for name, (t, T) in poses.items():
         _replace_atomically(out / f"{name}.txt", lambda path, t=t, T=T: write_tum(path, poses_to_trajectory(t, T)))
     if isinstance(odo, VisualInertialOdometry):
         _replace_atomically(out / "frame_status.txt", lambda path: write_frame_status(path, odo.frame_status))
-    return t_ns, T_WC
 
 
 class Checkpoints:
@@ -244,24 +249,23 @@ class Checkpoints:
         self.out, self.period_s, self.map_period_s, self.report_name = out, period_s, map_period_s, report_name
         now = time.monotonic()
         self._next, self._next_map = now + period_s, now + map_period_s
-        self.written = 0
 
     def step(self, odo, T_BS: np.ndarray, frames: int, mapping) -> None:
-        now = time.monotonic()
         if self.out is None:
             return
+        now = time.monotonic()
         if self.period_s > 0 and now >= self._next:
             self._next = now + self.period_s
             self.out.mkdir(parents=True, exist_ok=True)
-            t_ns, _ = write_pose_outputs(self.out, odo, T_BS)
-            partial = {"partial": True, "frames": frames, "frames_posed": int(len(t_ns)),
+            poses = pose_outputs(odo, T_BS)
+            write_pose_outputs(self.out, odo, poses)
+            partial = {"partial": True, "frames": frames, "frames_posed": int(len(poses["trajectory"][0])),
                        "keyframes": len(odo.keyframes)}
             if isinstance(odo, VisualInertialOdometry):
                 partial["vio"] = {k: v for k, v in odo.report().items() if k in ("stage", "metric", "frame_status",
                                                                                   "failures")}
             _replace_atomically(self.out / self.report_name,
                                 lambda path: path.write_text(json.dumps(partial, indent=2)))
-            self.written += 1
         if mapping is not None and self.map_period_s > 0 and now >= self._next_map:
             self._next_map = now + self.map_period_s
             self.out.mkdir(parents=True, exist_ok=True)
@@ -357,11 +361,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     if loop is not None:
         loop.finish()
     loop_s = time.perf_counter() - t_loop
-    t_ns, T_cw = odo.final_frame_poses()
-    T_WC = np.linalg.inv(T_cw.numpy()) if len(t_ns) else np.zeros((0, 4, 4))
-    T_WB = T_WC @ np.linalg.inv(seq.T_BS)   # scored below; write_pose_outputs writes the same poses
-    to, T_odo = odo.odometry_poses()
-    T_WB_odo = (np.linalg.inv(T_odo.numpy()) @ np.linalg.inv(seq.T_BS)) if len(to) else np.zeros((0, 4, 4))
+    poses = pose_outputs(odo, seq.T_BS)   # scored below, then written
+    (t_ns, T_WB), (_, T_WC), (to, T_WB_odo) = poses["trajectory"], poses["trajectory_cam"], poses["odometry"]
     timings = {"input_wait": t_wait, "input_reader_thread": reader.reader_seconds, **dict(odo.timings)}
     report = {
         "input": str(input_path), "sequence": seq.name,
@@ -390,7 +391,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
             report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
         else:   # arbitrary scale: score camera poses (module docstring)
-            T_WC_odo = np.linalg.inv(T_odo.numpy()) if len(to) else np.zeros((0, 4, 4))
+            T_WC_odo = T_WB_odo @ seq.T_BS
             report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WC, T_BX=seq.T_BS)
             report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WC_odo, T_BX=seq.T_BS)
     velocities = None
@@ -404,7 +405,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        write_pose_outputs(out, odo, seq.T_BS)
+        write_pose_outputs(out, odo, poses)
         if velocities is not None:
             np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
                        header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
