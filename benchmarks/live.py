@@ -18,7 +18,9 @@ and the last ``/vigs/status`` of every node. Per run:
 
 Then the same bag ``--fast`` (the replay waits for the frontend, nothing is skipped) for comparison.
 ``--starve N`` runs N busy processes beside the graph (a saturated robot computer).
-Run: ``vigs bench live [--bag BAG ...] [--rate 1] [--starve 0] [--no-fast]`` (default bag: the shipped sample).
+``--variant NAME=FILE`` adds a live run with that parameter file (settings compared in one invocation).
+Run: ``vigs bench live [--bag BAG ...] [--rate 1] [--starve 0] [--no-fast] [--variant NAME=FILE ...]`` (default
+bag: the shipped sample).
 """
 from __future__ import annotations
 
@@ -106,7 +108,8 @@ def busy_processes(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
-def run_graph(bag: Path, out: Path, pace: list[str], env: dict, compressed: bool, starve: int) -> dict:
+def run_graph(bag: Path, out: Path, pace: list[str], env: dict, compressed: bool, starve: int,
+              extra_params: list[str]) -> dict:
     import psutil
 
     out.mkdir(parents=True, exist_ok=True)
@@ -118,7 +121,7 @@ def run_graph(bag: Path, out: Path, pace: list[str], env: dict, compressed: bool
     # the replay starts once /image and /imu have a subscriber: the probe is one, so give the node processes
     # time to start and match before the first message (else the frontend misses the first seconds)
     cmd = [sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(bag), "--params", str(params),
-           "--linger", "5", "--settle", "8", *pace]
+           *(x for f in extra_params for x in ("--params", f)), "--linger", "5", "--settle", "8", *pace]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     launcher = psutil.Process(proc.pid)
@@ -218,9 +221,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=1.0, help="replay rate of the live run")
     parser.add_argument("--starve", type=int, default=0, help="busy processes beside the graph")
     parser.add_argument("--no-fast", action="store_true", help="skip the --fast comparison run")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME=FILE",
+                        help="also run the live run with this parameter file (repeatable): settings compared in "
+                             "one invocation, each bag's runs one after the other")
     parser.add_argument("--keep", help="keep the runs' outputs in this folder")
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args(argv)
+    variants = [v.split("=", 1) for v in args.variant]
+    if any(len(v) != 2 or not Path(v[1]).is_file() for v in variants):
+        parser.error("--variant takes NAME=FILE with an existing parameter file")
     env = dict(os.environ, ROS_DOMAIN_ID=str(10 + os.getpid() % 91), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -231,10 +240,13 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{bag}: no ground truth beside the bag")
                 return 2
             compressed = "image_transport:=compressed" in bag_input_remaps(bag)[1]
-            runs = [(f"x{args.rate:g}", ["--rate", str(args.rate)], args.starve)]
-            runs += [] if args.no_fast else [("fast", ["--fast"], 0)]
-            for label, pace, starve in runs:
-                r = run_graph(bag, base / f"{bag.name}_{label}", pace, env, compressed, starve)
+            live = ["--rate", str(args.rate)]
+            runs = [(f"x{args.rate:g}", live, args.starve, [])]
+            runs += [(f"x{args.rate:g} {name}", live, args.starve, [file]) for name, file in variants]
+            runs += [] if args.no_fast else [("fast", ["--fast"], 0, [])]
+            for label, pace, starve, extra in runs:
+                r = run_graph(bag, base / f"{bag.name}_{label.replace(' ', '_')}", pace, env, compressed, starve,
+                              extra)
                 if r["rc"] != 0:
                     print(r["log"][-4000:])
                     print(f"{bag.name} {label}: the graph exited with code {r['rc']}")

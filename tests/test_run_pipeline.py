@@ -339,3 +339,61 @@ def test_vigs_run_killed_mid_run_leaves_its_last_checkpoint(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
     _, alive = psutil.wait_procs(children, timeout=15)
     assert not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive), alive
+
+
+def test_frames_arriving_during_keyframe_work_are_tracked_there_and_replayed_alike(sequence, tmp_path):
+    """A live caller tracks a frame that arrives during a keyframe's work at the work's next yield point
+    (``DenseOdometry.interleave``): the frame is posed at once, against the new keyframe, never becomes a keyframe,
+    and the final trajectory stays as accurate; ``vigs run`` replaying the recorded schedule
+    (``frames_processed.txt``: stamp and yield point) gives the same trajectory."""
+    from vigs_core.eval.alignment import umeyama
+    from vigs_core.io import read_frame_schedule, write_frame_schedule
+    from vigs_core.system import OdometryStream
+
+    t_ns, images, T_WC = sequence
+    cfg = PipelineConfig(width=W, height=H)
+    cfg.imu.enabled = cfg.loop.enabled = cfg.mapping.enabled = False
+    cfg.odometry.init_min_parallax_px = 5.0
+    cfg.odometry.keyframes.flow_threshold_px = 8.0
+    stream = OdometryStream(CAM, cfg)
+    odo = stream.odometry
+    arrivals = iter(zip(t_ns, images))
+    schedule, nested_poses, passed = [], {}, []
+
+    def feed(t, img):
+        posed = []
+        stream.add_image(int(t), img, posed.append)
+        nested = odo.in_keyframe_work
+        schedule.append((int(t), odo.yield_points if nested else None))
+        if nested:
+            assert len(posed) == 1   # the pose is out before the keyframe work goes on
+            nested_poses[int(t)] = posed[0]
+
+    def at_yield_point():   # a frame arrives every second yield point (live: during the keyframe work)
+        passed.append(odo.yield_points)
+        if len(passed) % 2 == 0:
+            item = next(arrivals, None)
+            if item is not None:
+                feed(*item)
+
+    odo.interleave = at_yield_point
+    for t, img in arrivals:
+        feed(t, img)
+    assert len(schedule) == N and len(nested_poses) >= 3, schedule
+    keyframe_stamps = {kf.t_ns for kf in odo.keyframes.values()}
+    assert not keyframe_stamps & set(nested_poses)   # a frame tracked during keyframe work is no candidate
+    ts, P = odo.final_frame_poses()
+    assert len(ts) == N
+    est, gt = np.linalg.inv(P.numpy())[:, :3, 3], T_WC[:, :3, 3]
+    s, R, tt = umeyama(est, gt, True)
+    err = np.linalg.norm(s * est @ R.T + tt - gt, axis=1)
+    assert np.sqrt((err ** 2).mean()) < 0.02 * np.linalg.norm(np.diff(gt, axis=0), axis=1).sum()
+
+    write_asl(tmp_path / "seq", t_ns, images, T_WC)
+    write_frame_schedule(tmp_path / "frames_processed.txt", schedule)
+    report = run_pipeline(tmp_path / "seq", cfg, tmp_path / "out", progress=False,
+                          schedule=read_frame_schedule(tmp_path / "frames_processed.txt"))
+    assert report["frames_skipped"] == 0
+    replay = read_tum(tmp_path / "out" / "trajectory_cam.txt")
+    np.testing.assert_array_equal(replay.t_ns, ts)
+    np.testing.assert_allclose(replay.position, np.linalg.inv(P.numpy())[:, :3, 3], atol=1e-6)

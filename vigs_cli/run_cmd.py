@@ -17,8 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stride", type=int, help="use every n-th frame")
     parser.add_argument("--image-topic", help="bag image topic (default: found by message type)")
     parser.add_argument("--frames-from", metavar="FILE",
-                        help="process only the frames whose stamps (ns, first column) FILE lists and skip the rest, "
-                             "e.g. the frontend node's frames_processed.txt: replays a live run with its skips")
+                        help="process only the frames whose stamps (ns, first column) FILE lists, each at the yield "
+                             "point of the second column if any, and skip the rest: the frontend node's "
+                             "frames_processed.txt replays a live run with its skips and interleaving")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -36,15 +37,17 @@ def run(args: argparse.Namespace) -> int:
         cfg.frame_stride = args.stride
     if args.image_topic is not None:
         cfg.image_topic = args.image_topic
-    only_ns = None
+    schedule = None
     if args.frames_from is not None:
+        from vigs_core.io import read_frame_schedule
+
         try:
-            only_ns = read_stamps(args.frames_from)
+            schedule = read_frame_schedule(args.frames_from)
         except (OSError, ValueError) as err:
             print(f"vigs run: bad --frames-from: {err}", file=sys.stderr)
             return 2
     try:
-        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress, only_ns=only_ns)
+        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress, schedule=schedule)
     except (FileNotFoundError, ValueError) as err:
         print(f"vigs run: {err}", file=sys.stderr)
         return 2
@@ -55,11 +58,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}/trajectory.txt, trajectory_cam.txt, odometry.txt, keyframes.txt, frame_status.txt, report.json")
     # interrupted: the outputs are written, the exit code is the shell's for the signal (128 + its number)
     return {"SIGINT": 130, "SIGTERM": 143}.get(report.get("interrupted"), 0)
-
-
-def read_stamps(path: str) -> set[int]:
-    """The stamps (ns) a one-column text file lists ('#' comments and blank lines skipped)."""
-    from vigs_core.io.text_table import read_stamped_rows
-
-    t_ns, _, _ = read_stamped_rows(path, (1,), "whitespace_or_comma", "ns", "timestamp[ns]")
-    return {int(t) for t in t_ns}

@@ -110,7 +110,8 @@ class FrontendEngine:
         metric = self.stream.metric
         out.realigned, out.inertial_initialized = metric and not self._metric, metric
         self._metric = metric
-        self.report_keyframes(out, metric)
+        if not self.odometry.in_keyframe_work:   # a nested frame: the keyframe is reported once its work is done
+            self.report_keyframes(out, metric)
         return out
 
     @property

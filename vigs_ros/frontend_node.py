@@ -26,9 +26,11 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
 Real time: the callbacks only queue what arrives (IMU samples, images, loop corrections); one tracking thread
 gives the IMU samples to the core (``OdometryStream.add_imu``) and tracks. When it falls behind the camera,
 it tracks the newest frame the IMU covers and skips the older ones (``frames_skipped``, a ``behind`` warning
-on the status naming the CPU as the cause, the stamps of the tracked frames in ``frames_processed.txt``: ``vigs
-run --frames-from`` replays the run with the same skips); the estimator bridges the gap with the IMU. Odometry
-and ``/tf`` are published as soon as a frame's pose is tracked, before the keyframe work (BA) that may follow.
+on the status naming the CPU as the cause, the tracked frames in ``frames_processed.txt``: ``vigs run --frames-from`` replays the run with the same skips);
+the estimator bridges the gap with the IMU. Odometry and ``/tf`` are published as soon as a frame's pose is
+tracked, before the keyframe work (edge flows, BA) that may follow; a frame that arrives during that work is
+tracked at its next yield point (:mod:`vigs_core.frontend.odometry`, live callers; counted as
+``frames_tracked_during_keyframe_work``), not after all of it.
 No queue grows without bound: images wait at most ``image_queue_depth`` deep for the IMU, IMU samples at most
 ``imu_buffer_s`` for the tracking thread.
 * in ``preintegrated_topic`` (vigs_msgs/PreintegratedImu): validated and counted in diagnostics (the VIO core
@@ -57,7 +59,8 @@ BA, IMU initialisation and loop corrections), ``odometry.txt`` (each frame's pos
 re-expressed in the final world at IMU initialisation, like ``vigs run``'s), ``keyframes.txt`` (final
 keyframe body poses) and ``frontend_report.json`` (frames received / tracked / posed / still pending,
 keyframes, the IMU initialisation's stamp, the node's counters, latency from image arrival to odometry
-publish p50 / p95 / max, the estimator's failures), ``frames_processed.txt`` (stamps, ns, of the tracked frames),
+publish p50 / p95 / max, the estimator's failures), ``frames_processed.txt`` (the tracked frames and where:
+:mod:`vigs_core.io.frame_schedule`),
 ``frame_status.txt`` (each tracked frame's status: :mod:`vigs_core.io.frame_status`).
 """
 from __future__ import annotations
@@ -94,6 +97,7 @@ from msg_adapters.vigs import (
     pose_update_to_msg,
 )
 from vigs_core.camera import CameraModel
+from vigs_core.io import write_frame_schedule
 from vigs_core.system import PipelineConfig
 from vigs_core.system.pipeline import Checkpoints, pose_outputs, write_pose_outputs
 from vigs_core.types import ImuNoise
@@ -139,6 +143,8 @@ PARAMS = [
     ParamSpec("publish_tf", True, "publish map->odom->base_link on /tf and base_link->camera on /tf_static"),
     ParamSpec("T_body_camera", IDENTITY_16, "camera pose in the body frame T_bc, 4x4 row-major (EuRoC: cam0 T_BS)"),
     ParamSpec("time_offset_s", 0.0, "camera-IMU time offset: t_imu = t_cam + offset (s, Kalibr timeshift_cam_imu)"),
+    ParamSpec("track_during_keyframe_work", True, "track a frame that arrives during a keyframe's work at the work's "
+                                                  "next yield point, instead of after it (module docstring)"),
     ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)"),
     ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long"),
     ParamSpec("path_every_n", 10, "publish the path every n frames (and at every keyframe)"),
@@ -193,6 +199,7 @@ class FrontendNode(VigsNode):
         self.path_poses = []
         self.path_stale = False  # a correction moved the map frame: rebuild the path at the next frame
         self.after_correction = False   # a loop correction was applied since the last published pose
+        self.pose_metric = False        # the world was metric when the last pose was published
         self.first_image_wall: float | None = None
         self.held_for_camera: list[tuple[np.ndarray, str, object]] = []  # (image, encoding, header)
         self.frames_since_path = 0
@@ -206,7 +213,7 @@ class FrontendNode(VigsNode):
         self.sync_lock = threading.Lock()
         self.wake = threading.Event()
         self.stop = threading.Event()
-        self.processed_ns: list[int] = []
+        self.processed: list[tuple[int, int | None]] = []   # (stamp, yield point or None): frames_processed.txt
         self.latency_s: deque[float] = deque(maxlen=10000)   # image arrival -> odometry publish (wall s)
         self.queue_max = {"imu_samples": 0, "frames": 0}     # deepest queues seen by the tracking thread
         self.image_gaps = StampGaps()
@@ -260,6 +267,8 @@ class FrontendNode(VigsNode):
         self.camera = camera
         self.engine = FrontendEngine(camera, self.config, self.T_bc, self.noise if self.p["sync_imu"] else None,
                                      float(self.p["imu_buffer_s"]))
+        if self.p["track_during_keyframe_work"]:
+            self.engine.odometry.interleave = self.track_ready
         self.status.info["core"] = type(self.engine.odometry).__name__
         self.status.clear_error("camera_info")
         self.status.info["camera"] = (f"{camera.width}x{camera.height} {camera.distortion} -> processing "
@@ -359,15 +368,20 @@ class FrontendNode(VigsNode):
                 self.get_logger().error("tracking thread failure:\n" + traceback.format_exc())
 
     def step(self) -> None:
-        """Apply queued corrections, give the queued IMU samples to the core, then track the newest frame the IMU
-        covers and skip the older ready ones (module docstring)."""
-        engine = self.engine
-        if engine is None:
+        """Apply queued corrections, then :meth:`track_ready` (module docstring)."""
+        if self.engine is None:
             return
-        self.queue_max["imu_samples"] = max(self.queue_max["imu_samples"], len(self.imu_inbox))
-        self.queue_max["frames"] = max(self.queue_max["frames"], len(self.sync))
         while self.corrections:
             self.apply_update(self.corrections.popleft())
+        self.track_ready()
+        self.wake.set()   # more may have become ready meanwhile
+
+    def track_ready(self) -> None:
+        """Give the queued IMU samples to the core, then track the newest frame the IMU covers and skip the older
+        ready ones; also called by the core at the keyframe work's yield points (module docstring)."""
+        engine = self.engine
+        self.queue_max["imu_samples"] = max(self.queue_max["imu_samples"], len(self.imu_inbox))
+        self.queue_max["frames"] = max(self.queue_max["frames"], len(self.sync))
         while self.imu_inbox:
             remark = engine.stream.add_imu(*self.imu_inbox.popleft())
             if remark is not None:
@@ -388,7 +402,6 @@ class FrontendNode(VigsNode):
             self.status.warn("imu_coverage", f"frame at {t_ns} ns processed without IMU data up to its stamp "
                                              f"(IMU at {engine.stream.imu and engine.stream.imu.latest_ns} ns)")
         self.track(t_ns, image, encoding, header, arrived)
-        self.wake.set()   # more may have become ready meanwhile
 
     def track(self, t_ns: int, image, encoding: str, header, arrived: float) -> None:
         try:
@@ -405,9 +418,14 @@ class FrontendNode(VigsNode):
         if out is None:   # left out by frame_stride
             self.frame_done(header)
             return
-        self.processed_ns.append(t_ns)
+        odometry = self.engine.odometry
+        nested = odometry.in_keyframe_work   # tracked at a yield point of the keyframe work
+        self.processed.append((t_ns, odometry.yield_points if nested else None))
         self.status.count("frames_tracked")
-        self.checkpoints.step(self.engine.odometry, self.T_bc, len(self.processed_ns), None)
+        if nested:
+            self.status.count("frames_tracked_during_keyframe_work")
+        else:
+            self.checkpoints.step(odometry, self.T_bc, len(self.processed), None)
         if out.rotation_error > 1e-6:
             self.status.warn("core_pose", f"the odometry core returned rotations off SO(3) by {out.rotation_error:.2e}"
                                           " (projected onto SO(3) for output)")
@@ -451,6 +469,9 @@ class FrontendNode(VigsNode):
             self.after_correction = False
             T_before = self.engine.pose_before_correction(T_wc, self.engine.odometry.frames[-1].ref)
             before = None if T_before is None else body_from_camera(T_before, self.T_bc)
+        if self.engine.stream.metric and not self.pose_metric:   # the IMU initialisation re-expressed the world
+            self.frames.mark_correction()
+        self.pose_metric = self.engine.stream.metric
         T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc), before)
         self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"],
                                                pose_covariance=self.pose_covariance(self.engine.status)))
@@ -490,7 +511,6 @@ class FrontendNode(VigsNode):
             return
         T_wb = body_from_camera(out.T_wc, self.T_bc)
         if out.realigned:  # IMU initialisation re-expressed the world: map jumps, odom stays continuous
-            self.frames.mark_correction()
             self.realigned_at_ns = out.t_ns
             self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
         if out.realigned or self.path_stale:  # the map frame was re-expressed: so is every pose of the path
@@ -568,7 +588,7 @@ class FrontendNode(VigsNode):
             report.update(save_trajectories(self.engine, self.T_bc, out))
         report["inertial_initialized_at_s"] = None if self.realigned_at_ns is None else self.realigned_at_ns * 1e-9
         out.mkdir(parents=True, exist_ok=True)
-        (out / "frames_processed.txt").write_text("".join(f"{t}\n" for t in self.processed_ns))
+        write_frame_schedule(out / "frames_processed.txt", self.processed)
         (out / "frontend_report.json").write_text(json.dumps(report, indent=2))
         print(f"[frontend] wrote {out}/trajectory.txt ({report.get('frames_posed', 0)} frames), odometry.txt, "
               f"keyframes.txt, frame_status.txt, frames_processed.txt, frontend_report.json", file=sys.stderr)

@@ -26,6 +26,15 @@ the correction BA applied to ``b``: with ``R`` the tracked and ``R*`` the final 
 ``a``, the frame at time fraction ``alpha = (t - t_a) / (t_b - t_a)`` gets ``T = T_rel Exp(alpha Log(R^-1 R*))
 T_a`` (the end-point correction spread linearly in time over the frames in between, in ``a``'s camera frame),
 so the final trajectory has no saw-tooth where tracking overshot and the next keyframe's BA pulled back.
+
+Live callers (interleaved tracking): the keyframe work of step 3 takes several frame periods. It has yield points,
+after each edge's correspondence estimate and between BA iterations (and before the visual-inertial stages),
+where ``interleave`` (when set) is called: a caller with a frame that arrived meanwhile tracks it there by calling
+:meth:`DenseOdometry.process` again, so its pose is out within one step of the work instead of after all of it.
+Such a frame is tracked against the new keyframe at its pre-BA pose and disparities (it keeps its pose relative
+to that keyframe, so it follows the BA like any other frame) and cannot become a keyframe. Yield points are
+counted (``yield_points``), so a run can be replayed with every frame tracked at the same point
+(:mod:`vigs_core.system.schedule`). Time spent in ``interleave`` is left out of the keyframe work's timings.
 """
 from __future__ import annotations
 
@@ -180,6 +189,10 @@ class DenseOdometry:
         self._init_candidates: list[tuple[int, np.ndarray, Correspondences]] = []  # (frame idx, image, corr)
         self._ref_image: np.ndarray | None = None
         self._on_pose: Callable[[torch.Tensor], None] | None = None
+        self.interleave: Callable[[], None] | None = None   # called at the keyframe work's yield points
+        self.yield_points = 0          # yield points passed (module docstring, live callers)
+        self.in_keyframe_work = False  # True while a keyframe's work runs (a frame processed now is nested)
+        self._paused_s = 0.0           # time spent in ``interleave``, left out of the timings
 
     # ------------------------------------------------------------------ public
     def process(self, t_ns: int, image: np.ndarray,
@@ -188,16 +201,21 @@ class DenseOdometry:
 
         ``on_pose`` is called with the frame's tracked pose as soon as it is known, before the keyframe work
         (new keyframe, BA) that may follow: a live caller publishes odometry without waiting for the BA. The
-        returned pose is the causal one after that work (it differs from the tracked one on keyframes)."""
-        self.frames.append(_Frame(int(t_ns)))
-        self._on_pose = on_pose
-        if not self.initialized:
-            self._process_uninitialized(image)
-        else:
-            self._track(image)
-        if self.frames[-1].odom is not None:   # posed without tracking (the initialisation's frame)
-            self._send_pose(self.frames[-1].odom)
-        return self.frames[-1].odom
+        returned pose is the causal one after that work (it differs from the tracked one on keyframes).
+        Called during the keyframe work (from ``interleave``), the frame is tracked only (module docstring)."""
+        frame = _Frame(int(t_ns))
+        self.frames.append(frame)
+        outer, self._on_pose = self._on_pose, on_pose   # a nested frame's callback is its own
+        try:
+            if not self.initialized:
+                self._process_uninitialized(image)
+            else:
+                self._track(image)
+            if frame.odom is not None:   # posed without tracking (the initialisation's frame)
+                self._send_pose(frame.odom)
+        finally:
+            self._on_pose = outer
+        return frame.odom
 
     def _send_pose(self, pose: torch.Tensor) -> None:
         """Give ``process``'s ``on_pose`` the frame's pose, once per frame."""
@@ -277,10 +295,22 @@ class DenseOdometry:
         return torch.stack(poses) if poses else torch.zeros(0, 4, 4, dtype=torch.float64)
 
     def _tic(self) -> float:
-        return time.perf_counter()
+        return time.perf_counter() - self._paused_s
 
     def _toc(self, name: str, t0: float) -> None:
-        self.timings[name] += time.perf_counter() - t0
+        self.timings[name] += time.perf_counter() - self._paused_s - t0
+
+    def _yield_point(self) -> None:
+        """A point of the keyframe work where ``interleave`` may track a frame that arrived (module docstring)."""
+        if not self.in_keyframe_work:
+            return
+        self.yield_points += 1
+        if self.interleave is not None:
+            t0 = time.perf_counter()
+            try:
+                self.interleave()
+            finally:
+                self._paused_s += time.perf_counter() - t0
 
     def _warp(self, kf: Keyframe, T_target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Keyframe grid warped into a camera at ``T_target``: coordinates (P, 2) and whether they land in
@@ -476,6 +506,7 @@ class DenseOdometry:
             uv_ij, _ = self._warp(src, dst.pose)
             if (j, i) not in todo:
                 self.edges[(i, j)] = self._estimate(src.image, dst.image, uv_ij, estimator=est)
+                self._yield_point()
                 continue
             todo.discard((j, i))
             uv_ji, _ = self._warp(dst, src.pose)
@@ -483,6 +514,7 @@ class DenseOdometry:
             self.edges[(i, j)], self.edges[(j, i)] = est.estimate_pair(src.image, dst.image, uv_ij.numpy(),
                                                                        uv_ji.numpy())
             self._toc("flow", t0)
+            self._yield_point()
 
     def _ba(self, iterations: int, fixed: list[int] | None = None) -> None:
         """BA over the window. ``fixed``: keyframes whose poses are held (disparities free); by default the
@@ -505,7 +537,8 @@ class DenseOdometry:
         extra, extra_state = self._additional_terms(ids, poses)
         hold = mask if (fixed is None and self._holds_scale_gauge()) else None
         res = bundle_adjust(poses, disps, EdgeSet(ii, jj, target, weight), self.coords, self.intr, mask, cfg,
-                            extra=extra, extra_state=extra_state, fixed_disparity=hold, visual_dtype=self._dtype)
+                            extra=extra, extra_state=extra_state, fixed_disparity=hold, visual_dtype=self._dtype,
+                            between=self._yield_point)
         self._after_ba(ids, res)
         for n, k in enumerate(ids):   # copies: a view would keep the whole window's solution alive per keyframe
             self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n].clone(), res.disps[n].clone()
@@ -571,13 +604,22 @@ class DenseOdometry:
         f = self.frames[idx]
         f.ref, f.rel, f.odom = kf.id, pose @ se3_inverse(kf.pose), pose
         self._send_pose(pose)
-        if not self.policy.is_keyframe(corr.mean_flow, (f.t_ns - kf.t_ns) * 1e-9,
-                                       self._translation_flow(kf, f.rel, corr)):
-            return
-        new = self._new_keyframe(idx, image, pose, self._propagate_disparity(kf, corr, pose))
-        new_edges = self._insert_into_graph(new)
-        self._ba(cfg.ba.iterations)
-        for _ in range(cfg.refine_rounds):
-            self._refine_edges(new_edges)
+        if self.in_keyframe_work or not self.policy.is_keyframe(corr.mean_flow, (f.t_ns - kf.t_ns) * 1e-9,
+                                                                self._translation_flow(kf, f.rel, corr)):
+            return   # a frame tracked during the keyframe work (module docstring) is not a candidate
+        self.in_keyframe_work = True
+        try:
+            new = self._new_keyframe(idx, image, pose, self._propagate_disparity(kf, corr, pose))
+            new_edges = self._insert_into_graph(new)
             self._ba(cfg.ba.iterations)
-        f.odom = self.keyframes[new.id].pose
+            for _ in range(cfg.refine_rounds):
+                self._refine_edges(new_edges)
+                self._ba(cfg.ba.iterations)
+            f.odom = self.keyframes[new.id].pose
+            self._yield_point()
+            self._after_keyframe()
+        finally:
+            self.in_keyframe_work = False
+
+    def _after_keyframe(self) -> None:
+        """Hook: the end of a new keyframe's work (e.g. the visual-inertial stages)."""

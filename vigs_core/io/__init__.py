@@ -22,6 +22,7 @@ from vigs_core.io.euroc import (
     write_euroc_imu,
 )
 from vigs_core.io.euroc_sequence import EurocSequence
+from vigs_core.io.frame_schedule import read_frame_schedule, write_frame_schedule
 from vigs_core.io.frame_status import read_frame_status, write_frame_status
 from vigs_core.io.text_table import MalformedFileError, ns_to_seconds_text, seconds_to_ns
 from vigs_core.io.trajectory_file import read_trajectory, trajectory_format
@@ -37,6 +38,7 @@ __all__ = [
     "read_euroc_camera",
     "read_euroc_groundtruth",
     "read_euroc_imu",
+    "read_frame_schedule",
     "read_frame_status",
     "read_imu_yaml",
     "read_trajectory",
@@ -47,6 +49,7 @@ __all__ = [
     "write_euroc_camera",
     "write_euroc_groundtruth",
     "write_euroc_imu",
+    "write_frame_schedule",
     "write_frame_status",
     "write_imu_yaml",
     "write_tum",

@@ -15,6 +15,7 @@ a wrong scale ratio and pull the map's scale away; the frontend fixes one keyfra
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -92,8 +93,8 @@ def _solve_spd(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
 def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
                   intr: Intrinsics, fixed: torch.Tensor, config: BAConfig | None = None,
                   extra: AdditionalTerms | None = None, extra_state: Any = None,
-                  fixed_disparity: torch.Tensor | None = None, visual_dtype: torch.dtype | None = None
-                  ) -> BAResult:
+                  fixed_disparity: torch.Tensor | None = None, visual_dtype: torch.dtype | None = None,
+                  between: Callable[[], None] | None = None) -> BAResult:
     """Levenberg-Marquardt dense BA (see the module docstring).
 
     Args:
@@ -108,6 +109,8 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         visual_dtype: dtype of the visual linearisation, Schur complement, back-substitution and cost (e.g.
             float32, about 1.5x faster on CPU); the reduced camera system, the additional terms and the
             returned state keep the dtype of ``poses``. None: that of ``poses``.
+        between: called before each iteration after the first (a live caller tracks a frame that arrived
+            meanwhile; it must not change the inputs).
     Returns:
         :class:`BAResult` with the optimised poses and disparities.
     """
@@ -131,6 +134,8 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
     result = BAResult(poses, disps, extra_state)
     cost0 = None
     for it in range(cfg.iterations):
+        if it and between is not None:
+            between()
         system = linearize_visual(result.poses.to(vd), result.disps.to(vd), v_edges, v_coords, intr,
                                   cfg.huber_delta)
         if cost0 is None:   # the starting cost: the first linearisation sums the same robust cost

@@ -274,7 +274,7 @@ class Checkpoints:
 
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
                  progress: bool = True, sequence: InputSequence | None = None,
-                 only_ns: set[int] | None = None) -> dict:
+                 schedule: dict[int, int | None] | None = None) -> dict:
     """Run the dense odometry over a recording and write the outputs (module docstring).
 
     Args:
@@ -283,9 +283,10 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         out_dir: output folder (created); None writes nothing.
         progress: show a progress bar on stderr.
         sequence: an already opened input (``input_path`` is then only used in the report).
-        only_ns: process only the frames with these stamps (ns) and skip the rest, as a live run that fell behind
-            did (the frontend node's ``frames_processed.txt``): the same input with the same skips gives the
-            same trajectory.
+        schedule: process only the frames with these stamps (ns), each at its yield point (None: between
+            frames), and skip the rest, as a live run that fell behind did (the frontend node's
+            ``frames_processed.txt``, :mod:`vigs_core.io.frame_schedule`): the same input with the same skips
+            and interleaving gives the same trajectory.
     Returns:
         The report (also written as ``report.json``).
     """
@@ -307,6 +308,11 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         bar = tqdm(total=total, desc=f"vigs run {seq.name}", unit="frame", file=sys.stderr)
     t_wait = 0.0
     n = 0
+    read_ahead: list[tuple[int, Any]] = []
+    nested_until: dict[int, int] = {}   # yield point -> stamp of the last frame the schedule tracks there
+    for t_sched, y in (schedule or {}).items():
+        if y is not None:
+            nested_until[y] = max(nested_until.get(y, t_sched), t_sched)
     reader = FramePrefetcher(seq.frames(), lambda k, raw: None if k % cfg.frame_stride else (
         raw if isinstance(raw, BadFrame) else stream.prepare(raw)), count=total * cfg.frame_stride)
     t_loop = time.perf_counter()
@@ -315,39 +321,70 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                               cfg.map_checkpoint_period_s)
     bad_frames: list[dict] = []
     failure: Exception | None = None
+
+    def next_frame() -> tuple[int, Any]:
+        nonlocal t_wait
+        if read_ahead:
+            return read_ahead.pop()
+        t0 = time.perf_counter()
+        item = next(reader)
+        t_wait += time.perf_counter() - t0
+        return item
+
+    def take(t_ns: int, image: Any) -> bool:
+        """Give one frame to the odometry (after its IMU); False for a frame skipped, unreadable or strided."""
+        nonlocal n
+        if isinstance(image, BadFrame):   # skipped like a frame the run could not keep up with
+            bad_frames.append({"t_ns": int(t_ns), "reason": image.reason})
+            print(f"vigs run: frame at {t_ns} ns skipped: {image.reason}", file=sys.stderr)
+            if len(bad_frames) > cfg.max_bad_frames:
+                raise ValueError(f"{len(bad_frames)} frames could not be read (max_bad_frames "
+                                 f"{cfg.max_bad_frames}); the last: {image.reason}")
+            stream.skip(t_ns)
+            return False
+        if schedule is not None and t_ns not in schedule:
+            stream.skip(t_ns)
+            return False
+        imu_feed.until(t_ns)
+        stream.add_prepared(t_ns, image)
+        if image is None:   # between strided frames
+            return False
+        n += 1
+        if bar is not None:
+            bar.update(1)
+        return True
+
+    def at_yield_point() -> None:
+        """The schedule's frames tracked during the keyframe work at this yield point (mapping, loop closure and
+        checkpoints wait for the next frame between keyframe work)."""
+        last = nested_until.get(odo.yield_points)
+        while last is not None:
+            try:
+                t_ns, image = next_frame()
+            except StopIteration:
+                return
+            if t_ns > last:
+                read_ahead.append((t_ns, image))
+                return
+            take(t_ns, image)
+
+    if nested_until:
+        odo.interleave = at_yield_point
     try:
         while not stop.requested:
-            t0 = time.perf_counter()
             try:
-                t_ns, image = next(reader)
+                t_ns, image = next_frame()
             except StopIteration:
                 break
-            t_wait += time.perf_counter() - t0
-            if isinstance(image, BadFrame):   # skipped like a frame the run could not keep up with
-                bad_frames.append({"t_ns": int(t_ns), "reason": image.reason})
-                print(f"vigs run: frame at {t_ns} ns skipped: {image.reason}", file=sys.stderr)
-                if len(bad_frames) > cfg.max_bad_frames:
-                    raise ValueError(f"{len(bad_frames)} frames could not be read (max_bad_frames "
-                                     f"{cfg.max_bad_frames}); the last: {image.reason}")
-                stream.skip(t_ns)
-                continue
-            if only_ns is not None and t_ns not in only_ns:
-                stream.skip(t_ns)
-                continue
-            imu_feed.until(t_ns)
-            stream.add_prepared(t_ns, image)
-            if image is None:   # between strided frames
+            if not take(t_ns, image):
                 continue
             if mapping is not None:
                 mapping.step(image)
             if loop is not None:
                 loop.step()
-            n += 1
             checkpoints.step(odo, seq.T_BS, n, mapping)
-            if bar is not None:
-                bar.update(1)
-                if n % 20 == 0:
-                    bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
+            if bar is not None and n % 20 == 0:
+                bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
     except Exception as err:   # noqa: BLE001 - written out below, then raised
         failure = err
     finally:

@@ -198,11 +198,8 @@ class VisualInertialOdometry(DenseOdometry):
         super()._initialize(T_10, disp0)
         self._advance_stages()
 
-    def _track(self, image: np.ndarray) -> None:
-        before = self._next_kf
-        super()._track(image)
-        if self._next_kf != before:
-            self._advance_stages()
+    def _after_keyframe(self) -> None:
+        self._advance_stages()
 
     # ------------------------------------------------------------------ stages
     def _advance_stages(self) -> None:
