@@ -8,8 +8,10 @@ and the last ``/vigs/status`` of every node. Per run:
 * frames received by the probe, tracked / skipped (tracking behind) by the frontend and the images it never got
   (counted from the gaps in the stamps; its frontend_report.json);
 * ``/odometry`` latency p50 / p95 / max: its arrival minus the arrival of the image with the same stamp, as a
-  subscriber sees it (transport included); the same for ``/vigs/imu_odometry`` against ``/imu``, and its rate
-  (messages per second of bag time between its first and last message);
+  subscriber sees it (transport included; arrival = reception by the probe's DDS participant, the rmw's
+  ``received_timestamp``, so that the probe's own Python scheduling does not count; the p95 by its callbacks is
+  printed beside); the same for ``/vigs/imu_odometry`` against ``/imu``, and its rate (messages per second of bag
+  time between its first and last message);
 * CPU share (user + system over the run's wall time) and peak RSS per process (psutil, sampled every 0.2 s);
 * the deepest frontend queues (IMU samples and frames waiting for the tracking thread);
 * keyframes the mapper received and the events it still had pending at its last status;
@@ -61,15 +63,22 @@ class Probe:
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=domain_id)
         self.node = rclpy.create_node("live_probe", context=self.ctx)
-        self.at: dict[str, dict[tuple[int, int], float]] = {k: {} for k in ("image", "imu", "odom", "imu_odom")}
+        keys = ("image", "imu", "odom", "imu_odom")
+        self.at: dict[str, dict[tuple[int, int], float]] = {k: {} for k in keys}   # callback, monotonic s
+        self.rx: dict[str, dict[tuple[int, int], float]] = {k: {} for k in keys}   # reception by DDS, s
         self.odometry = []
         self.status: dict[str, dict[str, str]] = {}
 
-        def stamp_of(key):
-            return lambda m: self.at[key].setdefault((m.header.stamp.sec, m.header.stamp.nanosec), time.monotonic())
+        def record(key, m, info):
+            stamp = (m.header.stamp.sec, m.header.stamp.nanosec)
+            self.at[key].setdefault(stamp, time.monotonic())
+            self.rx[key].setdefault(stamp, info["received_timestamp"] * 1e-9)
 
-        def on_odom(m):
-            stamp_of("odom")(m)
+        def stamp_of(key):
+            return lambda m, info: record(key, m, info)
+
+        def on_odom(m, info):
+            record("odom", m, info)
             self.odometry.append(m)
 
         def on_status(m):
@@ -98,8 +107,11 @@ class Probe:
         self.node.destroy_node()
         self.ctx.try_shutdown()
 
-    def latency_ms(self, out: str, inp: str) -> np.ndarray:
-        a, b = self.at[out], self.at[inp]
+    def latency_ms(self, out: str, inp: str, received: bool = True) -> np.ndarray:
+        """Per stamp, arrival of ``out`` minus arrival of ``inp`` (ms): their reception by the probe's DDS
+        participant (``received``, what any subscriber gets, free of this process's own scheduling) or the
+        probe's Python callbacks."""
+        a, b = (self.rx[out], self.rx[inp]) if received else (self.at[out], self.at[inp])
         return np.array([a[k] - b[k] for k in a if k in b]) * 1e3
 
 
@@ -203,6 +215,8 @@ def summarize(r: dict, gt) -> dict:
         "lat_max": float(lat.max()) if len(lat) else float("nan"),
         "imu_odom_hz": (len(imu_t) - 1) / imu_span if imu_span > 0 else 0.0,
         "imu_lat_p95": pct(ilat, 95), "imu_lat_max": float(ilat.max()) if len(ilat) else float("nan"),
+        "lat_p95_callback": pct(probe.latency_ms("odom", "image", received=False), 95),
+        "imu_lat_p95_callback": pct(probe.latency_ms("imu_odom", "imu", received=False), 95),
         "init_s": None if init_s is None or first_image is None else init_s - (first_image[0] + first_image[1] * 1e-9),
         "ate_traj": ate, "ate_odom": odometry_ate_after_init(probe, gt, init_s),
         "queue_max": rep.get("queue_max"), "mapper_kf": mapper.get("keyframes_in"),
@@ -263,11 +277,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{f['odometry']:>5} {f['lat_p50']:>7.1f} {f['lat_p95']:>6.1f} {f['lat_max']:>6.0f} "
               f"{f['imu_odom_hz']:>6.1f} {f['imu_lat_p95']:>7.2f} {f['imu_lat_max']:>7.1f} {init:>6} "
               f"{100 * f['ate_traj']:>6.2f}cm {100 * f['ate_odom']:>6.2f}cm")
-    print("latencies in ms (image or IMU arrival to odometry arrival, at the probe)")
+    print("latencies in ms (image or IMU arrival to odometry arrival, by the probe's DDS reception stamps)")
     for name, label, f in rows:
         cpu = ", ".join(f"{k} {v:.0f}% {f['rss'].get(k, 0):.0f} MB" for k, v in f["cpu"].items())
         print(f"{name[:28]:<28} {label:<13} wall {f['wall_s']:.0f} s; CPU of one core and peak RSS: {cpu}; "
-              f"deepest queues {f['queue_max']}; images lost before the frontend {f['lost']}; mapper keyframes "
+              f"p95 by the probe's callbacks: odometry {f['lat_p95_callback']:.1f}, IMU odometry "
+              f"{f['imu_lat_p95_callback']:.2f} ms; deepest queues {f['queue_max']}; images lost before the frontend {f['lost']}; mapper keyframes "
               f"{f['mapper_kf']}, pending {f['mapper_pending']}")
     if args.json:
         Path(args.json).write_text(json.dumps([{"bag": n, "run": l, **f} for n, l, f in rows], indent=2))
