@@ -107,7 +107,7 @@ from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_
 from vigs_ros.frontend_engine import FrontendEngine
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, run_nodes
+from vigs_ros.runtime import VigsNode, run_nodes, take_queued
 from vigs_ros.time_sync import FrameSynchronizer, StampGaps
 
 NODE_NAME = "frontend"
@@ -242,7 +242,7 @@ class FrontendNode(VigsNode):
         else:
             self.set_camera(yaml_camera)
         if self.p["sync_imu"]:
-            self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+            self.imu_sub = self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.create_subscription(PreintegratedImu, self.p["preintegrated_topic"], self.on_preintegrated,
                                  reliable_qos(100))
         self.create_subscription(KeyframePoseUpdate, self.p["pose_update_topic"], self.on_pose_update,
@@ -279,12 +279,13 @@ class FrontendNode(VigsNode):
             self.accept_frame(image, encoding, header, arrived)
 
     def on_imu(self, msg: Imu) -> None:
-        try:
-            t_ns, gyro, acc = imu_to_sample(msg)
-        except ValueError:
-            return  # reported by the IMU node
-        self.imu_inbox.append((t_ns, gyro, acc))
-        self.imu_received_ns = t_ns   # the newest arrival (not the largest stamp: an outlier stamp would stick)
+        for m in (msg, *take_queued(self.imu_sub)):   # the samples queued behind it too (take_queued)
+            try:
+                t_ns, gyro, acc = imu_to_sample(m)
+            except ValueError:
+                continue  # reported by the IMU node
+            self.imu_inbox.append((t_ns, gyro, acc))
+            self.imu_received_ns = t_ns   # the newest arrival (not the largest stamp: an outlier would stick)
         self.wake.set()
 
     def on_image(self, msg) -> None:

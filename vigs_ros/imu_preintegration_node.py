@@ -42,7 +42,7 @@ from vigs_core.types import ImuNoise
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, run_nodes
+from vigs_ros.runtime import VigsNode, run_nodes, take_queued
 
 NODE_NAME = "imu_preintegration"
 
@@ -99,13 +99,18 @@ class ImuPreintegrationNode(VigsNode):
 
         self.pub_pre = self.create_publisher(PreintegratedImu, self.p["preintegrated_topic"], reliable_qos(100))
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
-        self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+        self.imu_sub = self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.create_subscription(NavState, self.p["keyframe_event_topic"], self.on_keyframe_event, reliable_qos(100))
         self.create_subscription(NavState, self.p["state_topic"], self.on_state, latched_qos(1))
         self.create_timer(0.5, self.expire_events)
 
     # ------------------------------------------------------------------ inputs
     def on_imu(self, msg: Imu) -> None:
+        for m in (msg, *take_queued(self.imu_sub)):   # the samples queued behind it too (take_queued)
+            self.add_imu(m)
+
+    def add_imu(self, msg: Imu) -> None:
+        """Buffer one sample; serve the keyframe windows it completes; publish odometry up to it."""
         try:
             t_ns, gyro, acc = imu_to_sample(msg)
         except ValueError as exc:

@@ -13,18 +13,55 @@ from __future__ import annotations
 import os
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 
 from vigs_ros.params import ParamSpec
 
 
 class VigsNode(Node):
-    """Base of the VIGS nodes: ``close()`` is called once at shutdown, before ``destroy_node``."""
+    """Base of the VIGS nodes: ``close()`` is called once at shutdown, before ``destroy_node``.
+
+    Publishers, and subscriptions that cannot be incompatible (best-effort and volatile: they match any writer),
+    get no QoS event handlers unless given some: rclpy adds default ones (incompatible QoS and type warnings) to
+    every wait-set round of the executor, which on this 2-core target cost a node taking a 200 Hz IMU about 20%
+    of its CPU (docs/benchmarks.md, live operation). The reliable and transient-local subscriptions keep them, so a
+    QoS mismatch is still reported on the subscriber's side."""
+
+    def create_publisher(self, *args, **kwargs):
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        kwargs.setdefault("event_callbacks", PublisherEventCallbacks(use_default_callbacks=False))
+        return super().create_publisher(*args, **kwargs)
+
+    def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
+        from rclpy.event_handler import SubscriptionEventCallbacks
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        if (isinstance(qos_profile, QoSProfile) and qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                and qos_profile.durability == DurabilityPolicy.VOLATILE):
+            kwargs.setdefault("event_callbacks", SubscriptionEventCallbacks(use_default_callbacks=False))
+        return super().create_subscription(msg_type, topic, callback, qos_profile, **kwargs)
 
     def close(self) -> None:
         """Release resources and flush outputs (override); the context may already be shut down."""
+
+
+def take_queued(subscription) -> Iterator:
+    """The messages already waiting for ``subscription``, taken now. rclpy's executor takes one message per
+    subscription per wait-set round, a Python round trip of about a millisecond on this target: a callback of a
+    high-rate topic (the IMU) that drains its queue this way lets a node that fell behind catch up in one round."""
+    while True:
+        try:
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        except InvalidHandle:   # destroyed at shutdown
+            return
+        if taken is None:
+            return
+        yield taken[0]
 
 
 PROCESS_NICE = ParamSpec("process_nice", 10, "niceness increment of the node's process when it runs alone (not "
