@@ -132,6 +132,9 @@ def test_still_start_is_held_at_the_first_pose(room_sequence):
     assert np.array_equal(t, stamps[:30]) and len(odo.keyframes) == 0
     assert torch.equal(P, torch.eye(4, dtype=torch.float64).expand(30, 4, 4))
     assert odo.report()["held_still_frames"] == 30
+    sent = []   # a live caller gets each held pose as it is given (on_pose)
+    odo.process(int(stamps[30]), still[0], sent.append)
+    assert len(sent) == 1 and torch.equal(sent[0], torch.eye(4, dtype=torch.float64))
     # with fusion off the behaviour is the front end's: no pose before initialisation
     off = _run(VisualInertialOdometry(intr, W, H, imu, NOISE, T_BC, OdometryConfig(), VioConfig(enabled=False)),
                stamps, still, count=30)

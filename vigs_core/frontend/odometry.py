@@ -211,11 +211,16 @@ class DenseOdometry:
                 self._process_uninitialized(image)
             else:
                 self._track(image)
-            if frame.odom is not None:   # posed without tracking (the initialisation's frame)
-                self._send_pose(frame.odom)
+            pose = frame.odom if frame.odom is not None else self._pose_before_initialization(frame.t_ns)
+            if pose is not None:   # posed without tracking (the initialisation's frame, a held one)
+                self._send_pose(pose)
         finally:
             self._on_pose = outer
-        return frame.odom
+        return pose
+
+    def _pose_before_initialization(self, t_ns: int) -> torch.Tensor | None:
+        """Hook: a pose for a frame the front end could not pose yet (e.g. held still); None: no pose."""
+        return None
 
     def _send_pose(self, pose: torch.Tensor) -> None:
         """Give ``process``'s ``on_pose`` the frame's pose, once per frame."""

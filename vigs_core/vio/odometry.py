@@ -257,12 +257,13 @@ class VisualInertialOdometry(DenseOdometry):
         """Consume one frame; its world->camera pose (4, 4), the first frame's while still (module docstring),
         or None while not initialised (``on_pose``: see :meth:`DenseOdometry.process`)."""
         self.frame_status[int(t_ns)] = self.status   # the claim its pose is published with (before keyframe work)
-        pose = super().process(t_ns, image, on_pose)
-        if pose is None and self._still():
-            self._held.append(int(t_ns))
-            pose = torch.eye(4, dtype=torch.float64)
-            self._send_pose(pose)
-        return pose
+        return super().process(t_ns, image, on_pose)
+
+    def _pose_before_initialization(self, t_ns: int) -> torch.Tensor | None:
+        if not self._still():
+            return None
+        self._held.append(int(t_ns))
+        return torch.eye(4, dtype=torch.float64)
 
     def _still(self) -> bool:
         if not self.vio_config.enabled or self.initialized:
