@@ -208,6 +208,10 @@ def summarize(r: dict, gt) -> dict:
     mapper = next((v for k, v in probe.status.items() if k.endswith("mapper")), {})
     pct = lambda x, q: float(np.percentile(x, q)) if len(x) else float("nan")  # noqa: E731
     lat, ilat = probe.latency_ms("odom", "image"), probe.latency_ms("imu_odom", "imu")
+    (r["out"] / "latency.json").write_text(json.dumps({   # per message, for a look at when the tail happens
+        name: sorted([s[0] * 10**9 + s[1], 1e3 * (rx[out][s] - rx[inp][s])] for s in rx[out] if s in rx[inp])
+        for name, out, inp in (("odometry", "odom", "image"), ("imu_odometry", "imu_odom", "imu"))
+        for rx in [probe.rx]}))
     return {
         "images": len(probe.at["image"]), "tracked": rep.get("frames_tracked"), "skipped": rep.get("frames_skipped"),
         "lost": rep.get("frames_lost_before_node"),
