@@ -7,9 +7,10 @@ import torch
 from adapters_helpers import cdr_round_trip, types  # noqa: F401  (types is a fixture)
 
 from msg_adapters.camera_info import camera_info_to_model, model_to_camera_info
-from msg_adapters.common import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from msg_adapters.common import matrix_to_quat_xyzw, quat_xyzw_to_matrix, stamp_to_ns
 from msg_adapters.imu import imu_messages_to_samples, imu_to_sample, sample_to_imu
-from msg_adapters.odometry import odometry_to_pose, path_to_trajectory, pose_to_odometry, trajectory_to_path
+from msg_adapters.odometry import (odometry_to_pose, path_to_trajectory, pose_to_odometry, poses_to_path,
+                                   trajectory_to_path)
 from msg_adapters.tf import StampedTransform, tf_message, tf_message_to_transforms, transform_stamped
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import so3_exp
@@ -133,6 +134,11 @@ def test_path_round_trip(types):
     back = path_to_trajectory(msg)
     np.testing.assert_array_equal(back.t_ns, traj.t_ns)
     np.testing.assert_allclose(back.matrices(), poses, atol=1e-9)
+    # the batched builder of a node's path gives the same message content
+    fast = cdr_round_trip(types, poses_to_path(types, traj.t_ns, poses, "map", 7), "nav_msgs/msg/Path")
+    assert fast.header.frame_id == "map" and stamp_to_ns(fast.header.stamp) == 7
+    np.testing.assert_array_equal(path_to_trajectory(fast).t_ns, traj.t_ns)
+    np.testing.assert_allclose(path_to_trajectory(fast).matrices(), poses, atol=1e-9)
 
 
 def test_tf_message_round_trip(types):

@@ -41,8 +41,10 @@ No queue grows without bound: images wait at most ``image_queue_depth`` deep for
 * out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105), with the
   pose covariance of the estimator's status when the pose is published: ``odometry_position_std`` /
   ``odometry_rotation_std`` while metric, ``odometry_unknown_std`` (do not fuse) while initialising or lost;
-  ``path_topic`` (nav_msgs/Path, transient-local) of the frame poses in ``map_frame`` (re-expressed as a whole
-  when the map frame jumps);
+  ``path_topic`` (nav_msgs/Path, transient-local): the keyframe body poses in ``map_frame`` as they are now
+  (after BA, IMU initialisation and loop corrections), at most every ``path_period_s`` of wall time when they
+  changed (a path of every frame, rebuilt at each correction, cost the tracking thread hundreds of milliseconds
+  on long runs; the frames' poses are on ``/odometry`` and ``/tf``);
   ``/tf``: ``map_frame -> odom_frame -> base_frame``; ``/tf_static``: ``base_frame -> camera_frame``
   (``T_body_camera``).
 * out ``keyframe_topic`` (vigs_msgs/Keyframe, transient-local, depth 20): image, disparity, pose, intrinsics;
@@ -66,6 +68,7 @@ publish p50 / p95 / max, the estimator's failures), ``frames_processed.txt`` (th
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import sys
 import threading
@@ -81,10 +84,10 @@ from tf2_msgs.msg import TFMessage
 from vigs_msgs.msg import Keyframe, KeyframePoseUpdate, NavState, PreintegratedImu
 
 from msg_adapters.camera_info import camera_info_to_model
-from msg_adapters.common import make_header, pose_msg, stamp_to_ns
+from msg_adapters.common import stamp_to_ns
 from msg_adapters.image import compressed_to_numpy, image_to_numpy
 from msg_adapters.imu import imu_to_sample
-from msg_adapters.odometry import pose_to_odometry
+from msg_adapters.odometry import pose_to_odometry, poses_to_path
 from msg_adapters.tf import StampedTransform, tf_message
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import (
@@ -128,7 +131,7 @@ PARAMS = [
     ParamSpec("preintegrated_topic", "/vigs/preintegrated_imu", "input vigs_msgs/PreintegratedImu"),
     ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "input vigs_msgs/KeyframePoseUpdate (loop closure)"),
     ParamSpec("odometry_topic", "/odometry", "output nav_msgs/Odometry (odom_frame -> base_frame)"),
-    ParamSpec("path_topic", "/path", "output nav_msgs/Path of frame poses in map_frame"),
+    ParamSpec("path_topic", "/path", "output nav_msgs/Path of the keyframe poses in map_frame"),
     ParamSpec("keyframe_topic", "/vigs/keyframes", "output vigs_msgs/Keyframe"),
     ParamSpec("keyframe_event_topic", "/vigs/keyframe_events", "output vigs_msgs/NavState at each new keyframe"),
     ParamSpec("state_topic", "/vigs/state", "output vigs_msgs/NavState: newest keyframe after optimisation"),
@@ -147,8 +150,8 @@ PARAMS = [
                                                   "next yield point, instead of after it (module docstring)"),
     ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)"),
     ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long"),
-    ParamSpec("path_every_n", 10, "publish the path every n frames (and at every keyframe)"),
-    ParamSpec("path_max_poses", 20000, "poses kept in the path"),
+    ParamSpec("path_period_s", 1.0, "publish the path at most this often (wall s), when keyframes changed"),
+    ParamSpec("path_max_poses", 20000, "newest keyframes in the path"),
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
     ParamSpec("odometry_position_std", 0.05, "position standard deviation (m) /odometry reports while the estimator "
                                              "is metric (tracking / reinitialised; it computes no per-frame "
@@ -196,13 +199,12 @@ class FrontendNode(VigsNode):
         self.engine: FrontendEngine | None = None
         self.realigned_at_ns: int | None = None
         self.frames = Rep105Frames()
-        self.path_poses = []
-        self.path_stale = False  # a correction moved the map frame: rebuild the path at the next frame
+        self.path_changed = False   # keyframes moved or were added since the path was last published
+        self.path_published = -math.inf   # when (monotonic s)
         self.after_correction = False   # a loop correction was applied since the last published pose
         self.pose_metric = False        # the world was metric when the last pose was published
         self.first_image_wall: float | None = None
         self.held_for_camera: list[tuple[np.ndarray, str, object]] = []  # (image, encoding, header)
-        self.frames_since_path = 0
         self.sync = FrameSynchronizer(self.offset_ns, max_pending=int(self.p["image_queue_depth"]),
                                       max_wait_ns=int(float(self.p["max_imu_wait_s"]) * 1e9))
         # queues from the callbacks (executor thread) to the tracking thread (module docstring)
@@ -454,7 +456,7 @@ class FrontendNode(VigsNode):
         if n:
             self.frames.mark_correction()
             self.after_correction = True
-            self.path_stale = True
+            self.path_changed = True
             self.status.count("corrections_applied")
             self.get_logger().info(f"applied loop-closure corrections to {n} keyframes")
 
@@ -510,17 +512,9 @@ class FrontendNode(VigsNode):
         self.report_estimator(out)
         if out.T_wc is None:
             return
-        T_wb = body_from_camera(out.T_wc, self.T_bc)
         if out.realigned:  # IMU initialisation re-expressed the world: map jumps, odom stays continuous
             self.realigned_at_ns = out.t_ns
             self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
-        if out.realigned or self.path_stale:  # the map frame was re-expressed: so is every pose of the path
-            self.rebuild_path()
-        else:
-            self.path_poses.append(self.types.new("geometry_msgs/msg/PoseStamped",
-                                                  header=make_header(self.types, out.t_ns, p["map_frame"]),
-                                                  pose=pose_msg(self.types, T_wb)))
-            del self.path_poses[:-int(p["path_max_poses"])]
         for kf in out.new_keyframes:
             kf.frame_id, kf.camera_frame_id = p["map_frame"], p["camera_frame"]
             self.pub_kf.publish(keyframe_to_msg(self.types, kf))
@@ -539,23 +533,17 @@ class FrontendNode(VigsNode):
                 newest, kf.t_ns, invert(kf.pose.numpy()), self.engine.keyframe_state(newest),
                 out.inertial_initialized)))
         self.frames_since_path += 1
-        if out.new_keyframes or out.realigned or self.frames_since_path >= int(p["path_every_n"]):
-            self.frames_since_path = 0
-            self.pub_path.publish(self.types.new("nav_msgs/msg/Path",
-                                                 header=make_header(self.types, out.t_ns, p["map_frame"]),
-                                                 poses=list(self.path_poses)))
+        self.path_changed |= bool(out.new_keyframes or out.updated_keyframes or out.realigned)
+        if self.path_changed and time.monotonic() - self.path_published >= float(p["path_period_s"]):
+            self.publish_path(out.t_ns)
 
-
-    def rebuild_path(self) -> None:
-        """The path's poses from the engine's current frame poses (after the map frame was re-expressed by the
-        IMU initialisation or corrected by loop closure), so that the path stays in one frame."""
-        t_ns, T_cw = self.engine.odometry.final_frame_poses()
+    def publish_path(self, t_ns: int) -> None:
+        """The keyframe body poses in the map frame as they are now (module docstring)."""
+        stamps, T_cw = self.engine.odometry.keyframe_poses()
         keep = int(self.p["path_max_poses"])
-        self.path_poses = [self.types.new("geometry_msgs/msg/PoseStamped",
-                                          header=make_header(self.types, int(t), self.p["map_frame"]),
-                                          pose=pose_msg(self.types, body_from_camera(invert(T), self.T_bc)))
-                           for t, T in zip(t_ns[-keep:], T_cw.numpy()[-keep:])]
-        self.path_stale = False
+        T_wb = np.linalg.inv(T_cw.numpy()[-keep:]) @ np.linalg.inv(self.T_bc)
+        self.pub_path.publish(poses_to_path(self.types, stamps[-keep:], T_wb, self.p["map_frame"], t_ns))
+        self.path_changed, self.path_published = False, time.monotonic()
 
     def stop_tracking(self) -> None:
         """Stop the tracking thread; it finishes the frame it is tracking."""

@@ -106,27 +106,32 @@ class ImuPreintegrationNode(VigsNode):
 
     # ------------------------------------------------------------------ inputs
     def on_imu(self, msg: Imu) -> None:
-        for m in (msg, *take_queued(self.imu_sub)):   # the samples queued behind it too (take_queued)
-            self.add_imu(m)
+        """Buffer the sample and those queued behind it (:func:`take_queued`), serve the keyframe windows they
+        complete, then propagate odometry over all of them at once: a node that fell behind catches up in one
+        vectorised propagation instead of one per sample."""
+        accepted = sum(self.add_imu(m) for m in (msg, *take_queued(self.imu_sub)))
+        if not accepted:
+            return
+        self.serve_pending()
+        self._since_odom += accepted
+        if self.p["publish_odometry"] and self._since_odom >= int(self.p["odometry_every_n"]):
+            self._since_odom = 0
+            self.publish_odometry(self.buffer.latest_ns)
 
-    def add_imu(self, msg: Imu) -> None:
-        """Buffer one sample; serve the keyframe windows it completes; publish odometry up to it."""
+    def add_imu(self, msg: Imu) -> bool:
+        """Buffer one sample; False when it was malformed, dropped (out of order) or held (far ahead)."""
         try:
             t_ns, gyro, acc = imu_to_sample(msg)
         except ValueError as exc:
             self.status.warn("malformed_imu", f"malformed Imu message dropped: {exc}")
-            return
+            return False
         remark = self.buffer.add(t_ns, gyro, acc)
         if remark is not None:
             self.status.warn("imu_stream", remark)
         if self.buffer.latest_ns != t_ns:   # dropped (out of order), or held far ahead of the stream
-            return
+            return False
         self.status.count("imu_in")
-        self.serve_pending()
-        self._since_odom += 1
-        if self.p["publish_odometry"] and self._since_odom >= int(self.p["odometry_every_n"]):
-            self._since_odom = 0
-            self.publish_odometry(t_ns)
+        return True
 
     def on_keyframe_event(self, msg: NavState) -> None:
         event = self.status.decode(msg_to_nav_state, msg, "malformed_event", "keyframe event")

@@ -34,7 +34,7 @@ where ``interleave`` (when set) is called: a caller with a frame that arrived me
 Such a frame is tracked against the new keyframe at its pre-BA pose and disparities (it keeps its pose relative
 to that keyframe, so it follows the BA like any other frame) and cannot become a keyframe. Yield points are
 counted (``yield_points``), so a run can be replayed with every frame tracked at the same point
-(:mod:`vigs_core.system.schedule`). Time spent in ``interleave`` is left out of the keyframe work's timings.
+(:mod:`vigs_core.io.frame_schedule`). Time spent in ``interleave`` is left out of the keyframe work's timings.
 """
 from __future__ import annotations
 
