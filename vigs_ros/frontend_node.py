@@ -532,7 +532,6 @@ class FrontendNode(VigsNode):
             self.pub_state.publish(nav_state_to_msg(self.types, self.nav_state(
                 newest, kf.t_ns, invert(kf.pose.numpy()), self.engine.keyframe_state(newest),
                 out.inertial_initialized)))
-        self.frames_since_path += 1
         self.path_changed |= bool(out.new_keyframes or out.updated_keyframes or out.realigned)
         if self.path_changed and time.monotonic() - self.path_published >= float(p["path_period_s"]):
             self.publish_path(out.t_ns)
