@@ -107,12 +107,16 @@ class Probe:
         self.node.destroy_node()
         self.ctx.try_shutdown()
 
-    def latency_ms(self, out: str, inp: str, received: bool = True) -> np.ndarray:
-        """Per stamp, arrival of ``out`` minus arrival of ``inp`` (ms): their reception by the probe's DDS
-        participant (``received``, what any subscriber gets, free of this process's own scheduling) or the
-        probe's Python callbacks."""
+    def latencies(self, out: str, inp: str, received: bool = True) -> list[tuple[int, float]]:
+        """(stamp ns, arrival of ``out`` minus arrival of ``inp`` in ms) for every stamp both have, in stamp order:
+        arrival = reception by the probe's DDS participant (``received``, what any subscriber gets, free of this
+        process's own scheduling) or the probe's Python callback."""
         a, b = (self.rx[out], self.rx[inp]) if received else (self.at[out], self.at[inp])
-        return np.array([a[k] - b[k] for k in a if k in b]) * 1e3
+        return sorted((k[0] * 10**9 + k[1], 1e3 * (a[k] - b[k])) for k in a if k in b)
+
+    def latency_ms(self, out: str, inp: str, received: bool = True) -> np.ndarray:
+        """The latencies (ms) of :meth:`latencies`."""
+        return np.array([ms for _, ms in self.latencies(out, inp, received)])
 
 
 def busy_processes(n: int) -> list[subprocess.Popen]:
@@ -208,10 +212,6 @@ def summarize(r: dict, gt) -> dict:
     mapper = next((v for k, v in probe.status.items() if k.endswith("mapper")), {})
     pct = lambda x, q: float(np.percentile(x, q)) if len(x) else float("nan")  # noqa: E731
     lat, ilat = probe.latency_ms("odom", "image"), probe.latency_ms("imu_odom", "imu")
-    (r["out"] / "latency.json").write_text(json.dumps({   # per message, for a look at when the tail happens
-        name: sorted([s[0] * 10**9 + s[1], 1e3 * (rx[out][s] - rx[inp][s])] for s in rx[out] if s in rx[inp])
-        for name, out, inp in (("odometry", "odom", "image"), ("imu_odometry", "imu_odom", "imu"))
-        for rx in [probe.rx]}))
     return {
         "images": len(probe.at["image"]), "tracked": rep.get("frames_tracked"), "skipped": rep.get("frames_skipped"),
         "lost": rep.get("frames_lost_before_node"),
@@ -270,6 +270,9 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{bag.name} {label}: the graph exited with code {r['rc']}")
                     return 1
                 rows.append((bag.name, label + (f" starve {starve}" if starve else ""), summarize(r, gt)))
+                (r["out"] / "latency.json").write_text(json.dumps({   # per message: when the tail happens
+                    "odometry": r["probe"].latencies("odom", "image"),
+                    "imu_odometry": r["probe"].latencies("imu_odom", "imu")}))
     print(f"load average before the last run: {os.getloadavg()[0]:.2f}")
     head = (f"{'bag':<28} {'run':<13} {'images':>6} {'tracked':>7} {'skipped':>7} {'odom':>5} {'lat p50':>7} "
             f"{'p95':>6} {'max':>6} {'imu Hz':>6} {'imu p95':>7} {'imu max':>7} {'init s':>6} {'ATE traj':>8} "
@@ -286,7 +289,8 @@ def main(argv: list[str] | None = None) -> int:
         cpu = ", ".join(f"{k} {v:.0f}% {f['rss'].get(k, 0):.0f} MB" for k, v in f["cpu"].items())
         print(f"{name[:28]:<28} {label:<13} wall {f['wall_s']:.0f} s; CPU of one core and peak RSS: {cpu}; "
               f"p95 by the probe's callbacks: odometry {f['lat_p95_callback']:.1f}, IMU odometry "
-              f"{f['imu_lat_p95_callback']:.2f} ms; deepest queues {f['queue_max']}; images lost before the frontend {f['lost']}; mapper keyframes "
+              f"{f['imu_lat_p95_callback']:.2f} ms; deepest queues {f['queue_max']}; images lost before the "
+              f"frontend {f['lost']}; mapper keyframes "
               f"{f['mapper_kf']}, pending {f['mapper_pending']}")
     if args.json:
         Path(args.json).write_text(json.dumps([{"bag": n, "run": l, **f} for n, l, f in rows], indent=2))

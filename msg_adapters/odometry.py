@@ -17,7 +17,6 @@ from msg_adapters.common import (
     numeric,
     pose_msg,
     pose_to_matrix,
-    quat_xyzw_to_matrix,
     read_vector3,
     vector3,
 )
@@ -79,23 +78,16 @@ def odometry_to_pose(msg) -> dict:
 
 
 def trajectory_to_path(types: MessageTypes, traj: Trajectory, frame_id: str, t_ns: int | None = None):
-    """A ``nav_msgs/Path`` of a trajectory (one PoseStamped per pose); header stamp = ``t_ns`` or the
-    last pose's stamp (0 for an empty trajectory)."""
-    poses = []
-    for t, p, q in zip(traj.t_ns, traj.position, traj.quat_wxyz):
-        T = np.eye(4)
-        T[:3, :3] = quat_xyzw_to_matrix(np.array([q[1], q[2], q[3], q[0]]))
-        T[:3, 3] = p
-        poses.append(types.new("geometry_msgs/msg/PoseStamped", header=make_header(types, int(t), frame_id),
-                               pose=pose_msg(types, T)))
+    """A ``nav_msgs/Path`` of a trajectory (:func:`poses_to_path`); header stamp = ``t_ns`` or the last pose's
+    stamp (0 for an empty trajectory)."""
     stamp = t_ns if t_ns is not None else (int(traj.t_ns[-1]) if len(traj) else 0)
-    return types.new("nav_msgs/msg/Path", header=make_header(types, stamp, frame_id), poses=poses)
+    return poses_to_path(types, traj.t_ns, traj.matrices(), frame_id, stamp)
 
 
 def poses_to_path(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, frame_id: str, stamp_ns: int):
     """A ``nav_msgs/Path`` of rigid poses (N, 4, 4) at stamps (N,) ns in ``frame_id``, header stamp ``stamp_ns``:
-    the quaternions of all poses in one batched conversion and no per-pose checks (:func:`trajectory_to_path`
-    costs about 0.4 ms a pose; a node that republishes a growing path cannot afford that)."""
+    the quaternions of all poses in one batched conversion and no per-pose checks (:func:`pose_msg` costs about
+    0.4 ms a pose; a node that republishes a growing path cannot afford that)."""
     q = matrix_to_quat(np.asarray(T, dtype=np.float64)[:, :3, :3]).tolist()   # (N, 4) w, x, y, z
     p = np.asarray(T, dtype=np.float64)[:, :3, 3].tolist()
     rows = zip(np.asarray(t_ns).tolist(), p, q)

@@ -26,7 +26,8 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
 Real time: the callbacks only queue what arrives (IMU samples, images, loop corrections); one tracking thread
 gives the IMU samples to the core (``OdometryStream.add_imu``) and tracks. When it falls behind the camera,
 it tracks the newest frame the IMU covers and skips the older ones (``frames_skipped``, a ``behind`` warning
-on the status naming the CPU as the cause, the tracked frames in ``frames_processed.txt``: ``vigs run --frames-from`` replays the run with the same skips);
+on the status naming the CPU as the cause, the tracked frames in ``frames_processed.txt``: ``vigs run
+--frames-from`` replays the run with the same skips and interleaving);
 the estimator bridges the gap with the IMU. Odometry and ``/tf`` are published as soon as a frame's pose is
 tracked, before the keyframe work (edge flows, BA) that may follow; a frame that arrives during that work is
 tracked at its next yield point (:mod:`vigs_core.frontend.odometry`, live callers; counted as

@@ -26,9 +26,9 @@ class VigsNode(Node):
 
     Publishers, and subscriptions that cannot be incompatible (best-effort and volatile: they match any writer),
     get no QoS event handlers unless given some: rclpy adds default ones (incompatible QoS and type warnings) to
-    every wait-set round of the executor, which on this 2-core target cost a node taking a 200 Hz IMU about 20%
-    of its CPU (docs/benchmarks.md, live operation). The reliable and transient-local subscriptions keep them, so a
-    QoS mismatch is still reported on the subscriber's side."""
+    every wait-set round of the executor, a cost paid for every message a node takes (docs/benchmarks.md, live
+    operation, ninth session). The reliable and transient-local subscriptions keep them, so a QoS mismatch is still
+    reported on the subscriber's side."""
 
     def create_publisher(self, *args, **kwargs):
         from rclpy.event_handler import PublisherEventCallbacks
