@@ -101,3 +101,29 @@ def test_loop_closure_removes_drift_and_the_map_follows():
     err_before = (before.means.double() - goal).norm(dim=1)
     err_after = (after.means.double() - goal).norm(dim=1)
     assert float(err_after.median()) < 0.3 * float(err_before.median())
+
+
+def test_close_can_discard_the_queued_jobs_and_waits_for_the_running_one():
+    """A node shutting down stops after the running job: the backlog is dropped, not searched (CI stalled on it)."""
+    import threading
+
+    closure = LoopClosure(LoopConfig(asynchronous=True), DISFlowEstimator(GRID), INTR)
+    started, release = threading.Event(), threading.Event()
+    finished = []
+
+    def blocking_information():
+        started.set()
+        release.wait(10)
+        finished.append(True)
+        return None
+
+    _, images, depths = circle_sequence(4, W, H, INTR.fx, GRID.stride)
+    views = [KeyframeView(k, images[k], torch.eye(4, dtype=torch.float64), depths[k]) for k in range(4)]
+    closure.add_keyframe(views[0], [], blocking_information)
+    assert started.wait(10)
+    for k in range(1, 4):
+        closure.add_keyframe(views[k], views[:k])
+    threading.Timer(0.2, release.set).start()
+    assert closure.close(discard_queued=True) == 3
+    assert finished == [True]                   # the running job was finished, not cut
+    assert closure.graph.ids == [0]           # the three queued ones never ran

@@ -153,8 +153,11 @@ class LoopDetectorNode(VigsNode):
             self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, depth=view.depth * depth_scale)
 
     def close(self) -> None:
+        """Stop loop closure without searching the keyframes still queued (nothing would receive the result)."""
         if self.closure is not None:
-            self.closure.close()
+            discarded = self.closure.close(discard_queued=True)
+            if discarded:
+                print(f"[{NODE_NAME}] at shutdown {discarded} queued loop-closure jobs were discarded", flush=True)
 
 
 def main(args: list[str] | None = None) -> int:

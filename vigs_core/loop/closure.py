@@ -160,12 +160,23 @@ class LoopClosure:
         self._jobs.join()
         return self.poll()
 
-    def close(self) -> None:
-        """Finish the queued jobs and stop the worker thread."""
+    def close(self, discard_queued: bool = False) -> int:
+        """Stop the worker thread after the queued jobs, or (``discard_queued``) after the running one only: a
+        node shutting down waits for no backlog of detections whose results nobody will receive. Returns the
+        number of jobs discarded."""
+        discarded = 0
         if self._thread is not None:
+            while discard_queued:
+                try:
+                    self._jobs.get_nowait()
+                except queue.Empty:
+                    break
+                self._jobs.task_done()
+                discarded += 1
             self._jobs.put(None)
             self._thread.join()
             self._thread = None
+        return discarded
 
     # ------------------------------------------------------------------ worker side
     def _submit(self, job: Callable[[], None]) -> None:
