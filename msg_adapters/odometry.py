@@ -9,13 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 from msg_adapters.common import (
+    check_pose_matrix,
     field,
     finite_array,
     header_stamp_ns,
     make_header,
     matrix_to_quat_xyzw,
+    ns_to_stamp,
     numeric,
-    pose_msg,
     pose_to_matrix,
     read_vector3,
     vector3,
@@ -28,30 +29,77 @@ from vigs_core.geometry import matrix_to_quat
 def pose_to_odometry(types: MessageTypes, t_ns: int, T, frame_id: str, child_frame_id: str,
                      velocity_world=None, angular_velocity_body=None, pose_covariance=None,
                      twist_covariance=None):
-    """A ``nav_msgs/Odometry`` for pose ``T`` (4, 4) of ``child_frame_id`` in ``frame_id``.
+    """A ``nav_msgs/Odometry`` for pose ``T`` (4, 4) of ``child_frame_id`` in ``frame_id``, every input checked
+    (a rigid transform, finite values, a stamp >= 0).
 
     Args:
         velocity_world: (3,) linear velocity in ``frame_id`` (m/s), rotated into the body for ``twist``.
         angular_velocity_body: (3,) angular velocity in the body (rad/s).
         pose_covariance, twist_covariance: (6, 6) covariances; default zero (unknown).
     """
+    ns_to_stamp(types, t_ns)
+    T = check_pose_matrix(T, "pose")
+    check = lambda x, shape, what: None if x is None else finite_array(x, shape, what)[None]  # noqa: E731
+    return odometry_messages(types, [t_ns], T[None], frame_id, child_frame_id,
+                             check(velocity_world, (3,), "velocity"), check(angular_velocity_body, (3,), "angular"),
+                             check(pose_covariance, (6, 6), "pose_covariance"),
+                             check(twist_covariance, (6, 6), "twist_covariance"))[0]
+
+
+def odometry_messages(types: MessageTypes, t_ns, T, frame_id: str, child_frame_id: str, velocity_world=None,
+                      angular_velocity_body=None, pose_covariance=None, twist_covariance=None) -> list:
+    """``nav_msgs/Odometry`` messages of rigid poses ``T`` (N, 4, 4) at stamps ``t_ns`` (N,) >= 0, unchecked:
+    for poses of the caller's own making at IMU rate, where :func:`pose_to_odometry`'s checks and keyword
+    construction cost more than the propagation. ``velocity_world`` / ``angular_velocity_body`` (N, 3) or (3,)
+    (see :func:`pose_to_odometry`); covariances (N, 6, 6) or (6, 6)."""
     T = np.asarray(T, dtype=np.float64)
-    pose = pose_msg(types, T)
-    v_b = np.zeros(3) if velocity_world is None else T[:3, :3].T @ finite_array(velocity_world, (3,), "velocity")
-    w_b = np.zeros(3) if angular_velocity_body is None else finite_array(angular_velocity_body, (3,), "angular")
-    pc = np.zeros(36) if pose_covariance is None else finite_array(pose_covariance, (6, 6), "pose_covariance")
-    tc = np.zeros(36) if twist_covariance is None else finite_array(twist_covariance, (6, 6), "twist_covariance")
-    return types.new(
-        "nav_msgs/msg/Odometry",
-        header=make_header(types, t_ns, frame_id),
-        child_frame_id=str(child_frame_id),
-        pose=types.new("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=pc.reshape(-1)),
-        twist=types.new(
-            "geometry_msgs/msg/TwistWithCovariance",
-            twist=types.new("geometry_msgs/msg/Twist", linear=vector3(types, v_b), angular=vector3(types, w_b)),
-            covariance=tc.reshape(-1),
-        ),
-    )
+    n = len(T)
+    R = T[:, :3, :3]
+    q = matrix_to_quat(R).tolist()   # (N, 4) w, x, y, z
+    pos = T[:, :3, 3].tolist()
+    v_b = (np.zeros((n, 3)) if velocity_world is None else
+           np.einsum("nji,nj->ni", R, np.broadcast_to(np.asarray(velocity_world, np.float64), (n, 3)))).tolist()
+    w_b = np.broadcast_to(np.zeros(3) if angular_velocity_body is None else
+                          np.asarray(angular_velocity_body, np.float64), (n, 3)).tolist()
+    cov = [None if c is None else np.broadcast_to(np.asarray(c, np.float64).reshape(-1, 36), (n, 36))
+           for c in (pose_covariance, twist_covariance)]
+    out = []
+    if isinstance(types, RclpyTypes):   # fill default messages in place, several times cheaper than keywords
+        make = types.message_class("nav_msgs/msg/Odometry")
+        for k in range(n):
+            m = make()
+            m.header.frame_id, m.child_frame_id = frame_id, child_frame_id
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(t_ns[k]), 1_000_000_000)
+            pose, twist = m.pose.pose, m.twist.twist
+            pose.position.x, pose.position.y, pose.position.z = pos[k]
+            rot = pose.orientation
+            rot.w, rot.x, rot.y, rot.z = q[k]
+            twist.linear.x, twist.linear.y, twist.linear.z = v_b[k]
+            twist.angular.x, twist.angular.y, twist.angular.z = w_b[k]
+            if cov[0] is not None:
+                m.pose.covariance = np.ascontiguousarray(cov[0][k])
+            if cov[1] is not None:
+                m.twist.covariance = np.ascontiguousarray(cov[1][k])
+            out.append(m)
+        return out
+    new = types.new
+    zero = np.zeros(36)
+    for k in range(n):
+        (x, y, z), (qw, qx, qy, qz) = pos[k], q[k]
+        out.append(new(
+            "nav_msgs/msg/Odometry",
+            header=make_header(types, int(t_ns[k]), frame_id),
+            child_frame_id=str(child_frame_id),
+            pose=new("geometry_msgs/msg/PoseWithCovariance",
+                     pose=new("geometry_msgs/msg/Pose", position=new("geometry_msgs/msg/Point", x=x, y=y, z=z),
+                              orientation=new("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)),
+                     covariance=zero if cov[0] is None else np.array(cov[0][k])),
+            twist=new("geometry_msgs/msg/TwistWithCovariance",
+                      twist=new("geometry_msgs/msg/Twist", linear=vector3(types, v_b[k]),
+                                angular=vector3(types, w_b[k])),
+                      covariance=zero if cov[1] is None else np.array(cov[1][k])),
+        ))
+    return out
 
 
 def odometry_to_pose(msg) -> dict:

@@ -9,8 +9,8 @@ from adapters_helpers import cdr_round_trip, types  # noqa: F401  (types is a fi
 from msg_adapters.camera_info import camera_info_to_model, model_to_camera_info
 from msg_adapters.common import matrix_to_quat_xyzw, quat_xyzw_to_matrix, stamp_to_ns
 from msg_adapters.imu import imu_messages_to_samples, imu_to_sample, sample_to_imu
-from msg_adapters.odometry import (odometry_to_pose, path_to_trajectory, pose_to_odometry, poses_to_path,
-                                   trajectory_to_path)
+from msg_adapters.odometry import (odometry_messages, odometry_to_pose, path_to_trajectory, pose_to_odometry,
+                                   poses_to_path, trajectory_to_path)
 from msg_adapters.tf import StampedTransform, tf_message, tf_message_to_transforms, transform_stamped
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import so3_exp
@@ -110,6 +110,23 @@ def test_odometry_round_trip_rotates_twist_into_body(types):
     np.testing.assert_allclose(out["T"], T, atol=1e-12)
     np.testing.assert_allclose(out["velocity_world"], v_w, atol=1e-12)
     np.testing.assert_allclose(out["pose_covariance"], cov)
+
+
+def test_odometry_batch_matches_the_checked_builder(types):
+    """IMU-rate odometry builds its messages unchecked, in a batch: the same messages as one by one."""
+    T = np.stack([random_pose(s) for s in range(3)])
+    v_w = np.array([[1.0, -2.0, 0.5], [0.0, 0.3, 0.1], [2.0, 0.0, -1.0]])
+    cov = np.diag(np.arange(1, 7, dtype=np.float64))
+    batch = odometry_messages(types, [5, 6, 7_000_000_001], T, "map", "base_link", velocity_world=v_w,
+                              angular_velocity_body=[0.1, 0.2, 0.3], twist_covariance=cov)
+    for k, msg in enumerate(batch):
+        one = pose_to_odometry(types, [5, 6, 7_000_000_001][k], T[k], "map", "base_link", velocity_world=v_w[k],
+                               angular_velocity_body=[0.1, 0.2, 0.3], twist_covariance=cov)
+        a, b = (odometry_to_pose(cdr_round_trip(types, m, "nav_msgs/msg/Odometry")) for m in (msg, one))
+        assert (a["t_ns"], a["frame_id"], a["child_frame_id"]) == (b["t_ns"], "map", "base_link")
+        for key in ("T", "velocity_world", "angular_velocity_body", "pose_covariance", "twist_covariance"):
+            np.testing.assert_allclose(a[key], b[key], atol=1e-12)
+        np.testing.assert_allclose(a["T"], T[k], atol=1e-12)
 
 
 def test_malformed_odometry_raises(types):

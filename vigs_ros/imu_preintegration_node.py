@@ -32,7 +32,7 @@ from sensor_msgs.msg import Imu
 from vigs_msgs.msg import NavState, PreintegratedImu
 
 from msg_adapters.imu import imu_to_sample
-from msg_adapters.odometry import pose_to_odometry
+from msg_adapters.odometry import odometry_messages
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import NavStateData, PreintegrationData, msg_to_nav_state, preintegration_to_msg
 from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
@@ -154,11 +154,9 @@ class ImuPreintegrationNode(VigsNode):
             return
         self.status.count("states_in")
         self.state_initialized = s.inertial_initialized
-        f64 = dict(dtype=torch.float64)
-        state = ImuState(s.t_ns, torch.as_tensor(s.T_wb[:3, :3], **f64), torch.as_tensor(s.T_wb[:3, 3], **f64),
-                         torch.as_tensor(s.velocity, **f64), torch.as_tensor(s.bias_gyro, **f64),
-                         torch.as_tensor(s.bias_acc, **f64))
-        self.state = state
+        f64 = lambda x: np.array(x, dtype=np.float64)  # noqa: E731
+        self.state = ImuState(s.t_ns, f64(s.T_wb[:3, :3]), f64(s.T_wb[:3, 3]), f64(s.velocity), f64(s.bias_gyro),
+                              f64(s.bias_acc))
         latest = self.buffer.latest_ns
         if latest is not None and latest > s.t_ns:  # catch up silently: odometry stamps never go back
             self.publish_odometry(latest, publish=False)
@@ -198,7 +196,8 @@ class ImuPreintegrationNode(VigsNode):
 
     # ------------------------------------------------------------------ odometry
     def publish_odometry(self, t_ns: int, publish: bool = True) -> None:
-        """Propagate the state to ``t_ns`` through the buffered IMU and publish odometry at every sample."""
+        """Propagate the state to ``t_ns`` through the buffered IMU and publish odometry at every sample (NumPy
+        state and unchecked batch messages: this runs for every IMU sample)."""
         state = self.state
         if state is None or t_ns <= state.t_ns:
             return
@@ -208,19 +207,19 @@ class ImuPreintegrationNode(VigsNode):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # stream defects were reported on arrival
             try:
-                path = propagate_path(state, samples, t_ns, self.gravity, self.p["integration_scheme"])
+                path = propagate_path(state, samples, t_ns, self.gravity, self.p["integration_scheme"],
+                                      rate_hz=self.p["rate_hz"])
             except ValueError as exc:
                 self.status.warn("propagation", f"cannot propagate the state from {state.t_ns} ns: {exc}")
                 return
-        R, p, v = path.R.numpy(), path.p.numpy(), path.v.numpy()
-        gyro = samples.gyro[-1] - state.bias_gyro.numpy()
-        for k in range(1, len(path.t_ns) if publish else 1):
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R[k], p[k]
-            self.pub_odom.publish(pose_to_odometry(self.types, int(path.t_ns[k]), T, self.p["world_frame"],
-                                                   self.p["base_frame"], velocity_world=v[k],
-                                                   angular_velocity_body=gyro))
-            self.status.count("odometry_out")
+        if publish:
+            T = np.tile(np.eye(4), (len(path.t_ns) - 1, 1, 1))
+            T[:, :3, :3], T[:, :3, 3] = path.R[1:], path.p[1:]
+            gyro = samples.gyro[-1] - state.bias_gyro
+            for msg in odometry_messages(self.types, path.t_ns[1:], T, self.p["world_frame"], self.p["base_frame"],
+                                         velocity_world=path.v[1:], angular_velocity_body=gyro):
+                self.pub_odom.publish(msg)
+            self.status.count("odometry_out", len(T))
         self.state = ImuState(int(path.t_ns[-1]), path.R[-1], path.p[-1], path.v[-1], state.bias_gyro,
                               state.bias_acc)
 

@@ -20,10 +20,10 @@ errors and covariance are ordered ``(phi, v, p, b_g, b_a)`` with the rotation er
 from vigs_core.imu.inertial_init import InertialInit, InertialInitConfig, inertial_only_init
 from vigs_core.imu.preintegration import (
     Preintegrated,
+    integrate_deltas,
     preintegrate,
     preintegrate_between,
     preintegrate_measurements,
-    preintegrate_path,
     preintegrate_segments,
     stack_preintegrated,
 )
@@ -45,12 +45,12 @@ __all__ = [
     "gravity_rotation",
     "inertial_only_init",
     "inertial_residual",
+    "integrate_deltas",
     "interval_measurements",
     "predict_state",
     "preintegrate",
     "preintegrate_between",
     "preintegrate_measurements",
-    "preintegrate_path",
     "preintegrate_segments",
     "propagate",
     "propagate_path",

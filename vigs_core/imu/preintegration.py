@@ -124,21 +124,6 @@ class Preintegrated:
 
 
 @dataclass
-class IntegratedPath:
-    """Every grid point of one integration: the deltas from the interval start to each grid stamp.
-
-    Attributes:
-        grid_ns: (K+1,) int64 grid stamps.
-        R: (K+1, 3, 3), v: (K+1, 3), p: (K+1, 3) deltas at each grid stamp (frame of the first).
-    """
-
-    grid_ns: np.ndarray
-    R: torch.Tensor
-    v: torch.Tensor
-    p: torch.Tensor
-
-
-@dataclass
 class _PieceMatrices:
     """The SO(3) matrices of the pieces' rotation vectors ``phi`` (K, 3), each (K, 3, 3) (NumPy), from one ``[phi]x``
     and one set of Rodrigues coefficients ``a = sin t / t``, ``b = (1 - cos t) / t^2``,
@@ -226,19 +211,16 @@ def _device_of(*xs) -> torch.device:
     return next((x.device for x in xs if isinstance(x, torch.Tensor)), torch.device("cpu"))
 
 
-def integrate_path(
-    dt: torch.Tensor, gyro: torch.Tensor, acc: torch.Tensor, bias_gyro: torch.Tensor, bias_acc: torch.Tensor,
-    scheme: str = "closed_form",
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Deltas ``(R (K+1,3,3), v (K+1,3), p (K+1,3))`` at every grid point (no covariance, no Jacobians)."""
-    device = _device_of(dt, gyro, acc)
+def integrate_deltas(dt: np.ndarray, gyro: np.ndarray, acc: np.ndarray, bias_gyro, bias_acc,
+                     scheme: str = "closed_form") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Deltas ``(R (K+1,3,3), v (K+1,3), p (K+1,3))`` at every grid point, as float64 NumPy arrays (no
+    covariance, no Jacobians): the per-sample path of IMU-rate odometry, a few intervals at a time."""
     dt, gyro, acc, bg, ba = (host(x, np.float64) for x in (dt, gyro, acc, bias_gyro, bias_acc))
     gyro, acc = gyro.reshape(-1, 3), acc.reshape(-1, 3)
     segment, first = np.zeros(len(dt), dtype=np.int64), np.zeros(1, dtype=np.int64)
     _, R, v, p, *_ = _integrate(dt, gyro - bg, acc - ba, segment, first, scheme)
     zero = np.zeros((1, 3))
-    out = (np.concatenate((np.eye(3)[None], R)), np.concatenate((zero, v)), np.concatenate((zero, p)))
-    return tuple(torch.from_numpy(x).to(device) for x in out)
+    return np.concatenate((np.eye(3)[None], R)), np.concatenate((zero, v)), np.concatenate((zero, p))
 
 
 def preintegrate_segments(
@@ -400,23 +382,6 @@ def preintegrate_rotation(
     bg = _bias64(bias_gyro)
     exp = _PieceMatrices.of((gyro - bg) * dt[:, None], "forster").exp
     return torch.from_numpy(segmented_cumulative_product(exp, np.zeros(len(dt), dtype=np.int64))[-1]).to(device)
-
-
-def preintegrate_path(
-    imu: ImuSamples,
-    t0_ns: int,
-    t1_ns: int,
-    bias_gyro: torch.Tensor | np.ndarray | None = None,
-    bias_acc: torch.Tensor | np.ndarray | None = None,
-    scheme: str = "closed_form",
-    rate_hz: float | None = None,
-    device: torch.device | str = "cpu",
-) -> IntegratedPath:
-    """Deltas from ``t0_ns`` to every sample inside the interval and to ``t1_ns`` (for IMU-rate output)."""
-    grid_ns, dt, gyro, acc = interval_measurements(imu, t0_ns, t1_ns, rate_hz=rate_hz)
-    bg, ba = _bias64(bias_gyro), _bias64(bias_acc)
-    R, v, p = integrate_path(dt, gyro, acc, bg, ba, scheme)
-    return IntegratedPath(grid_ns, R.to(device), v.to(device), p.to(device))
 
 
 def stack_preintegrated(items: list[Preintegrated]) -> Preintegrated:

@@ -15,7 +15,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from vigs_core.imu.preintegration import Preintegrated, preintegrate_path
+from vigs_core.arrays import constant_like, host
+from vigs_core.imu.preintegration import Preintegrated, integrate_deltas
+from vigs_core.imu.samples import interval_measurements
 from vigs_core.types import ImuSamples
 
 GRAVITY_VECTOR = (0.0, 0.0, -9.81)
@@ -23,7 +25,8 @@ GRAVITY_VECTOR = (0.0, 0.0, -9.81)
 
 @dataclass
 class ImuState:
-    """Navigation state of the body (IMU) frame in a gravity-aligned world.
+    """Navigation state of the body (IMU) frame in a gravity-aligned world; the arrays are tensors or NumPy
+    arrays (:func:`propagate_path` returns the same kind).
 
     Attributes:
         t_ns: stamp (ns).
@@ -32,11 +35,11 @@ class ImuState:
     """
 
     t_ns: int
-    R: torch.Tensor
-    p: torch.Tensor
-    v: torch.Tensor
-    bias_gyro: torch.Tensor
-    bias_acc: torch.Tensor
+    R: torch.Tensor | np.ndarray
+    p: torch.Tensor | np.ndarray
+    v: torch.Tensor | np.ndarray
+    bias_gyro: torch.Tensor | np.ndarray
+    bias_acc: torch.Tensor | np.ndarray
 
 
 @dataclass
@@ -44,9 +47,9 @@ class PropagatedPath:
     """States at every grid stamp of a propagation: t_ns (K+1,), R (K+1,3,3), p (K+1,3), v (K+1,3)."""
 
     t_ns: np.ndarray
-    R: torch.Tensor
-    p: torch.Tensor
-    v: torch.Tensor
+    R: torch.Tensor | np.ndarray
+    p: torch.Tensor | np.ndarray
+    v: torch.Tensor | np.ndarray
 
 
 def _gravity(gravity, like: torch.Tensor) -> torch.Tensor:
@@ -70,17 +73,23 @@ def predict_state(state: ImuState, pre: Preintegrated, gravity=GRAVITY_VECTOR) -
 
 
 def propagate_path(
-    state: ImuState, imu: ImuSamples, t1_ns: int, gravity=GRAVITY_VECTOR, scheme: str = "closed_form"
+    state: ImuState, imu: ImuSamples, t1_ns: int, gravity=GRAVITY_VECTOR, scheme: str = "closed_form",
+    rate_hz: float | None = None,
 ) -> PropagatedPath:
-    """States at every IMU sample after ``state.t_ns`` up to ``t1_ns`` (inclusive, interpolated end)."""
-    path = preintegrate_path(imu, state.t_ns, t1_ns, state.bias_gyro, state.bias_acc, scheme,
-                             device=state.p.device)
-    g = _gravity(gravity, state.p)
-    tau = torch.as_tensor((path.grid_ns - path.grid_ns[0]) * 1e-9, dtype=state.p.dtype, device=state.p.device)
-    R = state.R @ path.R
-    v = state.v + g * tau[:, None] + (state.R @ path.v[..., None])[..., 0]
-    p = state.p + state.v * tau[:, None] + 0.5 * g * (tau * tau)[:, None] + (state.R @ path.p[..., None])[..., 0]
-    return PropagatedPath(path.grid_ns, R, p, v)
+    """States at every IMU sample after ``state.t_ns`` up to ``t1_ns`` (inclusive, interpolated end).
+
+    The arithmetic is float64 NumPy on the host (IMU-rate odometry propagates one or a few samples at a
+    time, where torch's per-operation cost would dominate); the states come back as the state's arrays
+    (tensors on its device, or NumPy). ``rate_hz``: nominal rate of the gap warnings (default: the median)."""
+    grid_ns, dt, gyro, acc = interval_measurements(imu, state.t_ns, t1_ns, rate_hz=rate_hz)
+    dR, dv, dp = integrate_deltas(dt, gyro, acc, state.bias_gyro, state.bias_acc, scheme)
+    R0, p0, v0 = (host(x, np.float64) for x in (state.R, state.p, state.v))
+    g = np.asarray(gravity, dtype=np.float64)
+    tau = ((grid_ns - grid_ns[0]) * 1e-9)[:, None]
+    R = R0 @ dR
+    v = v0 + g * tau + dv @ R0.T
+    p = p0 + v0 * tau + 0.5 * g * tau * tau + dp @ R0.T
+    return PropagatedPath(grid_ns, *(constant_like(x, state.p) for x in (R, p, v)))
 
 
 def propagate(

@@ -52,8 +52,10 @@ def find_stream_defects(t_ns: np.ndarray, rate_hz: float | None = None, gap_fact
         gap_factor: an interval longer than ``gap_factor`` nominal periods is a gap.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    t_sorted = np.unique(t_ns)  # gaps are judged on the sorted, de-duplicated stamps
-    positive = np.diff(t_sorted)
+    step = np.diff(t_ns)
+    increasing = bool((step > 0).all())
+    t_sorted = t_ns if increasing else np.unique(t_ns)  # gaps are judged on the sorted, de-duplicated stamps
+    positive = step if increasing else np.diff(t_sorted)
     if rate_hz is not None:
         period = 1e9 / float(rate_hz)
     elif len(positive):
@@ -62,7 +64,7 @@ def find_stream_defects(t_ns: np.ndarray, rate_hz: float | None = None, gap_fact
         period = float("nan")
     is_gap = positive > gap_factor * period
     gaps = np.stack((t_sorted[:-1][is_gap], t_sorted[1:][is_gap]), axis=1)
-    out_of_order = int((np.diff(t_ns) < 0).sum())
+    out_of_order = 0 if increasing else int((step < 0).sum())
     return StreamDefects(out_of_order, len(t_ns) - len(t_sorted), gaps.astype(np.int64), period)
 
 
