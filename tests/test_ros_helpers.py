@@ -1,5 +1,5 @@
 """ROS-side helpers without a graph: REP-105 frames, IMU buffering and frame synchronisation, parameter files
-(every shipped key is declared by its node), remap parsing."""
+(every shipped key is declared by its node), remap parsing, process priority."""
 from __future__ import annotations
 
 import numpy as np
@@ -173,3 +173,36 @@ def test_stamp_gaps_count_the_frames_missing_between_stamps():
     stamps = [k * 50_000_000 + (k % 3) * 1_000_000 for k in range(10)] + [650_000_000, 700_000_000, 1_000_000_000]
     assert [gaps.add(t) for t in stamps] == [0] * 10 + [3, 0, 5]
     assert gaps.add(990_000_000) == 0   # not after the last: not a gap
+
+
+def test_renice_moves_every_thread_and_the_autogroup_of_its_own_session_only():
+    """With autogroup scheduling, a thread's niceness weighs only inside its session: a node the launcher started
+    (a session of its own) must renice its autogroup too, and a node started from a shell must not renice the
+    shell's session."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, threading, time\n"
+            "from vigs_ros.runtime import renice\n"
+            "worker = threading.Thread(target=time.sleep, args=(2,)); worker.start()\n"
+            "ok = renice(3)\n"
+            "nices = {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir('/proc/self/task')}\n"
+            "group = open('/proc/self/autogroup').read().split('nice')[1].strip() "
+            "if os.path.exists('/proc/self/autogroup') else 'none'\n"
+            "print(ok, sorted(nices), group)\n")
+
+    def run(new_session):
+        out = subprocess.run([sys.executable, "-c", code], start_new_session=new_session, capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split(maxsplit=2)
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    ok, nices, group = run(True)
+    assert ok == "True" and nices == f"[{min(19, base + 3)}]"
+    if os.path.exists("/proc/self/autogroup"):
+        own = int(open("/proc/self/autogroup").read().split("nice")[1])
+        assert group.strip() == str(min(19, own + 3))
+        ok, nices, group = run(False)
+        assert group.strip() == str(own)   # the caller's session is left alone

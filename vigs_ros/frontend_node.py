@@ -111,13 +111,14 @@ from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_
 from vigs_ros.frontend_engine import FrontendEngine
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, run_nodes, take_queued
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes, take_queued
 from vigs_ros.time_sync import FrameSynchronizer, StampGaps
 
 NODE_NAME = "frontend"
 IDENTITY_16 = [float(v) for v in np.eye(4).reshape(-1)]
 
 PARAMS = [
+    process_nice(0),
     ParamSpec("image_topic", "/image", "input image topic (Image, or CompressedImage with image_transport=compressed)"),
     ParamSpec("image_transport", "raw", "raw (sensor_msgs/Image) or compressed (sensor_msgs/CompressedImage)"),
     ParamSpec("camera_info_topic", "/camera_info", "input sensor_msgs/CameraInfo topic"),
@@ -177,6 +178,7 @@ class FrontendNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
+        self.process_nice = int(self.p["process_nice"])
         if self.p["image_transport"] not in ("raw", "compressed"):
             raise ValueError(f"image_transport must be raw or compressed, got {self.p['image_transport']!r}")
         self.T_bc = matrix_from_param(self.p["T_body_camera"], "T_body_camera")

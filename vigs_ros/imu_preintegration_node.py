@@ -42,11 +42,12 @@ from vigs_core.types import ImuNoise
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, run_nodes, take_queued
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes, take_queued
 
 NODE_NAME = "imu_preintegration"
 
 PARAMS = [
+    process_nice(0),
     ParamSpec("imu_topic", "/imu", "input sensor_msgs/Imu topic (sensor-data QoS)"),
     ParamSpec("keyframe_event_topic", "/vigs/keyframe_events", "input vigs_msgs/NavState: new keyframes"),
     ParamSpec("state_topic", "/vigs/state", "input vigs_msgs/NavState: latest optimised state"),
@@ -79,6 +80,7 @@ class ImuPreintegrationNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
+        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         if self.p["integration_scheme"] not in ("closed_form", "forster"):
             raise ValueError(f"integration_scheme must be closed_form or forster, got {self.p['integration_scheme']!r}")

@@ -36,13 +36,13 @@ from vigs_core.solver import Intrinsics
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos
-from vigs_ros.runtime import PROCESS_NICE, VigsNode, run_nodes
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 
 NODE_NAME = "loop_detector"
 F64 = torch.float64
 
 PARAMS = [
-    PROCESS_NICE,
+    process_nice(10),
     ParamSpec("keyframe_topic", "/vigs/keyframes", "input vigs_msgs/Keyframe"),
     ParamSpec("frontend_update_topic", "/vigs/keyframe_pose_updates", "input vigs_msgs/KeyframePoseUpdate (BA)"),
     ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "output vigs_msgs/KeyframePoseUpdate after PGBA"),

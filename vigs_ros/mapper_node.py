@@ -38,12 +38,12 @@ from vigs_core.mapping.mapper import GaussianMapper, MapperConfig
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos
-from vigs_ros.runtime import PROCESS_NICE, VigsNode, run_nodes
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 
 NODE_NAME = "mapper"
 
 PARAMS = [
-    PROCESS_NICE,
+    process_nice(10),
     ParamSpec("keyframe_topic", "/vigs/keyframes", "input vigs_msgs/Keyframe"),
     ParamSpec("pose_update_topics", ["/vigs/keyframe_pose_updates", "/vigs/loop_pose_updates"],
               "input vigs_msgs/KeyframePoseUpdate topics (frontend BA, loop closure)"),

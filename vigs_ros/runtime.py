@@ -1,8 +1,8 @@
 """Running nodes: one node per process (each node's ``main``) or several in one process (composed).
 
 ``run_nodes`` initialises rclpy with the process's ``--ros-args`` (so ``--params-file``, remapping and
-``-p use_sim_time:=true`` work as in any ROS 2 node), lowers the process's priority by the node's
-``process_nice`` when it runs one node alone (the mapper and the loop detector: real-time tracking first; a
+``-p use_sim_time:=true`` work as in any ROS 2 node), changes the process's niceness by the node's
+``process_nice`` when it runs one node alone (the mapper and the loop detector yield to real-time tracking; a
 composed process keeps the frontend's priority), spins the nodes in one executor (multi-threaded when
 there are several), and on SIGINT/SIGTERM (rclpy's signal handlers shut the context down) closes every node
 (``close()``: flush what must be saved) before destroying it. Exit code: 0 after a clean shutdown, 1 when a
@@ -64,20 +64,42 @@ def take_queued(subscription) -> Iterator:
         yield taken[0]
 
 
-PROCESS_NICE = ParamSpec("process_nice", 10, "niceness increment of the node's process when it runs alone (not "
-                                            "composed): on a saturated CPU the frontend's tracking keeps its core")
+def process_nice(default: int) -> ParamSpec:
+    """The ``process_nice`` parameter of a node that runs alone in its process (not composed)."""
+    return ParamSpec("process_nice", int(default), "niceness increment of the node's process when it runs alone "
+                                                   "(not composed); positive yields the CPU to tracking, negative "
+                                                   "(needs root or CAP_SYS_NICE) takes it first")
 
 
-def lower_priority(increment: int) -> None:
-    """Raise the niceness of every thread of this process by ``increment``. Linux keeps a niceness per thread and
-    ``os.nice`` changes only the caller's: a node's worker thread (the mapper's optimisation) and the DDS threads,
-    started before, would keep the old priority."""
+def renice(increment: int) -> bool:
+    """Add ``increment`` to the niceness of every thread of this process (clamped to -20..19) and, when the process
+    leads its own session, of its scheduling autogroup; False when the system refused (a negative increment
+    without the privilege).
+
+    Linux keeps a niceness per thread and ``os.nice`` changes only the caller's: a node's worker thread (the
+    mapper's optimisation) and the DDS threads, started before, would keep the old priority. With autogroup
+    scheduling (``/proc/sys/kernel/sched_autogroup_enabled``, the default of desktop kernels) the CPU is shared
+    first between sessions, and a thread's niceness only weighs within its session: the launcher starts every
+    node in a session of its own, so a node yields to tracking only through its autogroup's niceness."""
+    done = True
     for tid in os.listdir("/proc/self/task"):
         try:
             now = os.getpriority(os.PRIO_PROCESS, int(tid))
-            os.setpriority(os.PRIO_PROCESS, int(tid), min(19, now + int(increment)))
-        except (ProcessLookupError, PermissionError):   # a thread that ended meanwhile
+            os.setpriority(os.PRIO_PROCESS, int(tid), max(-20, min(19, now + int(increment))))
+        except ProcessLookupError:   # a thread that ended meanwhile
             pass
+        except PermissionError:
+            done = False
+    autogroup = "/proc/self/autogroup"
+    if os.getsid(0) == os.getpid() and os.path.exists(autogroup):   # never renice a shell's session
+        try:
+            with open(autogroup) as f:
+                now = int(f.read().split("nice")[1])
+            with open(autogroup, "w") as f:
+                f.write(str(max(-20, min(19, now + int(increment)))))
+        except (OSError, ValueError, IndexError):
+            done = False
+    return done
 
 
 def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None = None,
@@ -101,8 +123,10 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     try:
         for factory in factories:
             nodes.append(factory(context=context))
-        if len(nodes) == 1 and getattr(nodes[0], "process_nice", 0) > 0:
-            lower_priority(nodes[0].process_nice)
+        nice = getattr(nodes[0], "process_nice", 0) if len(nodes) == 1 else 0
+        if nice and not renice(nice):
+            nodes[0].get_logger().warn(f"process_nice {nice}: not permitted (a negative niceness needs root or "
+                                       f"CAP_SYS_NICE); the process keeps its priority")
         if multithreaded is None:
             multithreaded = len(nodes) > 1
         executor = (MultiThreadedExecutor(num_threads=num_threads, context=context) if multithreaded
