@@ -19,7 +19,8 @@ Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
   (EuRoC ``sensor.yaml`` or a Kalibr camchain, :func:`vigs_core.io.read_camera_yaml`) the camera comes from that
   file instead (bags without CameraInfo, e.g. ROS 1 EuRoC bags), its ``T_BS`` replaces ``T_body_camera`` unless
   ``camera_yaml_extrinsic`` is false, and CameraInfo messages are ignored.
-* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS) when ``sync_imu``: frames are processed in stamp order
+* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS) when ``sync_imu``, taken by a thread of its own
+  (:class:`vigs_ros.runtime.ThreadedSubscription`): frames are processed in stamp order
   once the IMU reaches their stamp (+ ``time_offset_s``), at most ``max_imu_wait_s`` of frame time late
   (:class:`vigs_ros.time_sync.FrameSynchronizer`); frames released without IMU coverage are reported.
 
@@ -111,7 +112,7 @@ from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_
 from vigs_ros.frontend_engine import FrontendEngine
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, process_nice, run_nodes, take_queued
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 from vigs_ros.time_sync import FrameSynchronizer, StampGaps
 
 NODE_NAME = "frontend"
@@ -247,7 +248,7 @@ class FrontendNode(VigsNode):
         else:
             self.set_camera(yaml_camera)
         if self.p["sync_imu"]:
-            self.imu_sub = self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+            self.create_threaded_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.create_subscription(PreintegratedImu, self.p["preintegrated_topic"], self.on_preintegrated,
                                  reliable_qos(100))
         self.create_subscription(KeyframePoseUpdate, self.p["pose_update_topic"], self.on_pose_update,
@@ -283,8 +284,10 @@ class FrontendNode(VigsNode):
         for image, encoding, header, arrived in held:  # images that arrived before the camera info
             self.accept_frame(image, encoding, header, arrived)
 
-    def on_imu(self, msg: Imu) -> None:
-        for m in (msg, *take_queued(self.imu_sub)):   # the samples queued behind it too (take_queued)
+    def on_imu(self, msgs: list[Imu]) -> None:
+        """The IMU samples taken by the subscription's own thread (every one queued): to the tracking thread's
+        inbox (a deque: appends are thread-safe)."""
+        for m in msgs:
             try:
                 t_ns, gyro, acc = imu_to_sample(m)
             except ValueError:

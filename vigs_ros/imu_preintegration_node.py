@@ -3,7 +3,9 @@ IMU-rate odometry propagated from the latest estimated state.
 
 Topics (names are parameters; see params/imu_preintegration.yaml):
 
-* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS): validated on arrival
+* in ``imu_topic`` (sensor_msgs/Imu, sensor-data QoS), taken by a thread of its own
+  (:class:`vigs_ros.runtime.ThreadedSubscription`; the other callbacks share the node's state under ``lock``):
+  validated on arrival
   (:class:`vigs_core.imu.buffer.ImuBuffer`): malformed, out-of-order and duplicated samples are dropped with a
   warning, gaps are reported, a sample stamped far ahead of the stream is held until the next one and rejected
   as an outlier when the stream goes on at its old time base.
@@ -21,6 +23,7 @@ Topics (names are parameters; see params/imu_preintegration.yaml):
 from __future__ import annotations
 
 import sys
+import threading
 import time
 import warnings
 from collections import deque
@@ -42,7 +45,7 @@ from vigs_core.types import ImuNoise
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
-from vigs_ros.runtime import VigsNode, process_nice, run_nodes, take_queued
+from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 
 NODE_NAME = "imu_preintegration"
 
@@ -101,24 +104,26 @@ class ImuPreintegrationNode(VigsNode):
 
         self.pub_pre = self.create_publisher(PreintegratedImu, self.p["preintegrated_topic"], reliable_qos(100))
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
-        self.imu_sub = self.create_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+        self.lock = threading.Lock()   # on_imu runs on the IMU subscription's own thread
+        self.create_threaded_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.create_subscription(NavState, self.p["keyframe_event_topic"], self.on_keyframe_event, reliable_qos(100))
         self.create_subscription(NavState, self.p["state_topic"], self.on_state, latched_qos(1))
         self.create_timer(0.5, self.expire_events)
 
     # ------------------------------------------------------------------ inputs
-    def on_imu(self, msg: Imu) -> None:
-        """Buffer the sample and those queued behind it (:func:`take_queued`), serve the keyframe windows they
-        complete, then propagate odometry over all of them at once: a node that fell behind catches up in one
-        vectorised propagation instead of one per sample."""
-        accepted = sum(self.add_imu(m) for m in (msg, *take_queued(self.imu_sub)))
-        if not accepted:
-            return
-        self.serve_pending()
-        self._since_odom += accepted
-        if self.p["publish_odometry"] and self._since_odom >= int(self.p["odometry_every_n"]):
-            self._since_odom = 0
-            self.publish_odometry(self.buffer.latest_ns)
+    def on_imu(self, msgs: list[Imu]) -> None:
+        """Buffer the samples taken (all those queued: :class:`ThreadedSubscription`), serve the keyframe windows
+        they complete, then propagate odometry over all of them at once: a node that fell behind catches up in
+        one vectorised propagation instead of one per sample."""
+        with self.lock:
+            accepted = sum(self.add_imu(m) for m in msgs)
+            if not accepted:
+                return
+            self.serve_pending()
+            self._since_odom += accepted
+            if self.p["publish_odometry"] and self._since_odom >= int(self.p["odometry_every_n"]):
+                self._since_odom = 0
+                self.publish_odometry(self.buffer.latest_ns)
 
     def add_imu(self, msg: Imu) -> bool:
         """Buffer one sample; False when it was malformed, dropped (out of order) or held (far ahead)."""
@@ -136,32 +141,34 @@ class ImuPreintegrationNode(VigsNode):
         return True
 
     def on_keyframe_event(self, msg: NavState) -> None:
-        event = self.status.decode(msg_to_nav_state, msg, "malformed_event", "keyframe event")
-        if event is None:
-            return
-        self.status.count("keyframe_events")
-        prev = self.last_keyframe
-        if prev is not None and event.t_ns <= prev.t_ns:
-            self.status.warn("event_order", f"keyframe {event.keyframe_id} at {event.t_ns} ns is not after "
-                                            f"keyframe {prev.keyframe_id} at {prev.t_ns} ns: ignored")
-            return
-        self.last_keyframe = event
-        if prev is not None:
-            self.pending.append((prev, event, time.monotonic()))
-            self.serve_pending()
+        with self.lock:
+            event = self.status.decode(msg_to_nav_state, msg, "malformed_event", "keyframe event")
+            if event is None:
+                return
+            self.status.count("keyframe_events")
+            prev = self.last_keyframe
+            if prev is not None and event.t_ns <= prev.t_ns:
+                self.status.warn("event_order", f"keyframe {event.keyframe_id} at {event.t_ns} ns is not after "
+                                                f"keyframe {prev.keyframe_id} at {prev.t_ns} ns: ignored")
+                return
+            self.last_keyframe = event
+            if prev is not None:
+                self.pending.append((prev, event, time.monotonic()))
+                self.serve_pending()
 
     def on_state(self, msg: NavState) -> None:
-        s = self.status.decode(msg_to_nav_state, msg, "malformed_state", "state")
-        if s is None:
-            return
-        self.status.count("states_in")
-        self.state_initialized = s.inertial_initialized
-        f64 = lambda x: np.array(x, dtype=np.float64)  # noqa: E731
-        self.state = ImuState(s.t_ns, f64(s.T_wb[:3, :3]), f64(s.T_wb[:3, 3]), f64(s.velocity), f64(s.bias_gyro),
-                              f64(s.bias_acc))
-        latest = self.buffer.latest_ns
-        if latest is not None and latest > s.t_ns:  # catch up silently: odometry stamps never go back
-            self.publish_odometry(latest, publish=False)
+        with self.lock:
+            s = self.status.decode(msg_to_nav_state, msg, "malformed_state", "state")
+            if s is None:
+                return
+            self.status.count("states_in")
+            self.state_initialized = s.inertial_initialized
+            f64 = lambda x: np.array(x, dtype=np.float64)  # noqa: E731
+            self.state = ImuState(s.t_ns, f64(s.T_wb[:3, :3]), f64(s.T_wb[:3, 3]), f64(s.velocity),
+                                  f64(s.bias_gyro), f64(s.bias_acc))
+            latest = self.buffer.latest_ns
+            if latest is not None and latest > s.t_ns:  # catch up silently: odometry stamps never go back
+                self.publish_odometry(latest, publish=False)
 
     # ------------------------------------------------------------------ preintegration
     def serve_pending(self) -> None:
@@ -185,16 +192,17 @@ class ImuPreintegrationNode(VigsNode):
             self.status.count("preintegrations_out")
 
     def expire_events(self) -> None:
-        now = time.monotonic()
-        while self.pending and now - self.pending[0][2] > self.p["event_timeout_s"]:
-            start, end, _ = self.pending.popleft()
-            self.status.warn("imu_missing", f"no IMU data up to keyframe {end.keyframe_id} ({end.t_ns} ns) after "
-                                            f"{self.p['event_timeout_s']} s: window {start.keyframe_id} -> "
-                                            f"{end.keyframe_id} not preintegrated")
-        if self.buffer.latest_ns is None and now - self._started > self.p["no_imu_error_s"]:
-            self.status.set_error("no_imu", f"no IMU messages received on {self.p['imu_topic']}")
-        else:
-            self.status.clear_error("no_imu")
+        with self.lock:
+            now = time.monotonic()
+            while self.pending and now - self.pending[0][2] > self.p["event_timeout_s"]:
+                start, end, _ = self.pending.popleft()
+                self.status.warn("imu_missing", f"no IMU data up to keyframe {end.keyframe_id} ({end.t_ns} ns) "
+                                                f"after {self.p['event_timeout_s']} s: window {start.keyframe_id} "
+                                                f"-> {end.keyframe_id} not preintegrated")
+            if self.buffer.latest_ns is None and now - self._started > self.p["no_imu_error_s"]:
+                self.status.set_error("no_imu", f"no IMU messages received on {self.p['imu_topic']}")
+            else:
+                self.status.clear_error("no_imu")
 
     # ------------------------------------------------------------------ odometry
     def publish_odometry(self, t_ns: int, publish: bool = True) -> None:

@@ -1,0 +1,66 @@
+"""vigs_ros.runtime's threaded subscription: a high-rate topic taken by a thread of its own, not the executor."""
+from __future__ import annotations
+
+import threading
+import time
+
+from ros_helpers import ros_context, spin_until  # noqa: F401  (ros_context is a fixture)
+
+from msg_adapters.imu import imu_to_sample, sample_to_imu
+from msg_adapters.types import RclpyTypes
+from vigs_ros.qos import reliable_qos
+from vigs_ros.runtime import VigsNode
+
+N = 60
+
+
+def publish_imu(node, topic: str, n: int) -> None:
+    from sensor_msgs.msg import Imu
+
+    pub = node.create_publisher(Imu, topic, reliable_qos(n))
+    deadline = time.monotonic() + 10
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    types = RclpyTypes()
+    for k in range(n):
+        pub.publish(sample_to_imu(types, 1_000_000_000 + 5_000_000 * k, [0.0, 0.0, 0.0], [0.0, 0.0, 9.81]))
+
+
+def test_threaded_subscription_takes_every_message_once_on_its_own_thread(ros_context):
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import Imu
+
+    node = VigsNode("threaded_sub_test", context=ros_context)
+    got, threads = [], set()
+
+    def on_imu(msgs):
+        threads.add(threading.current_thread().name)
+        got.extend(imu_to_sample(m)[0] for m in msgs)
+
+    node.create_threaded_subscription(Imu, "/imu_threaded", on_imu, reliable_qos(N))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)   # spun below: it must not take the threaded subscription's messages
+    publish_imu(node, "/imu_threaded", N)
+    assert spin_until(executor, lambda: len(got) >= N)
+    executor.spin_once(timeout_sec=0.2)
+    assert got == [1_000_000_000 + 5_000_000 * k for k in range(N)]   # all, in order, none twice
+    assert threads == {"sub/imu_threaded"}
+    node.destroy_node()
+    assert not any(t.name == "sub/imu_threaded" and t.is_alive() for t in threading.enumerate())
+
+
+def test_a_failing_threaded_callback_shuts_the_context_down_and_is_reported(ros_context):
+    from sensor_msgs.msg import Imu
+
+    node = VigsNode("threaded_sub_fail", context=ros_context)
+
+    def on_imu(msgs):
+        raise RuntimeError("boom")
+
+    node.create_threaded_subscription(Imu, "/imu_fail", on_imu, reliable_qos(10))
+    publish_imu(node, "/imu_fail", 3)
+    deadline = time.monotonic() + 10
+    while ros_context.ok() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not ros_context.ok()
+    assert node.failed_threads == ["/imu_fail"]
