@@ -134,8 +134,8 @@ def trajectory_to_path(types: MessageTypes, traj: Trajectory, frame_id: str, t_n
 
 def poses_to_path(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, frame_id: str, stamp_ns: int):
     """A ``nav_msgs/Path`` of rigid poses (N, 4, 4) at stamps (N,) ns in ``frame_id``, header stamp ``stamp_ns``:
-    the quaternions of all poses in one batched conversion and no per-pose checks (:func:`pose_msg` costs about
-    0.4 ms a pose; a node that republishes a growing path cannot afford that)."""
+    the quaternions of all poses in one batched conversion and no per-pose checks (:func:`pose_msg` per pose is
+    too slow for a node that republishes a growing path; docs/benchmarks.md, live operation)."""
     q = matrix_to_quat(np.asarray(T, dtype=np.float64)[:, :3, :3]).tolist()   # (N, 4) w, x, y, z
     p = np.asarray(T, dtype=np.float64)[:, :3, 3].tolist()
     rows = zip(np.asarray(t_ns).tolist(), p, q)

@@ -179,7 +179,6 @@ class FrontendNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
-        self.process_nice = int(self.p["process_nice"])
         if self.p["image_transport"] not in ("raw", "compressed"):
             raise ValueError(f"image_transport must be raw or compressed, got {self.p['image_transport']!r}")
         self.T_bc = matrix_from_param(self.p["T_body_camera"], "T_body_camera")

@@ -83,7 +83,6 @@ class ImuPreintegrationNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
-        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         if self.p["integration_scheme"] not in ("closed_form", "forster"):
             raise ValueError(f"integration_scheme must be closed_form or forster, got {self.p['integration_scheme']!r}")

@@ -60,7 +60,6 @@ class LoopDetectorNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
-        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         cv2.setNumThreads(int(self.p["torch_threads"]))
         self.config = build_config(LoopConfig(), self.p, "loop.")

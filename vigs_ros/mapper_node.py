@@ -69,7 +69,6 @@ class MapperNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.p = declare(self, PARAMS)
-        self.process_nice = int(self.p["process_nice"])
         torch.set_num_threads(int(self.p["torch_threads"]))
         self.config = build_config(MapperConfig(), self.p, "mapper.")
         self.types = RclpyTypes()

@@ -47,6 +47,10 @@ class VigsNode(Node):
             kwargs.setdefault("event_callbacks", SubscriptionEventCallbacks(use_default_callbacks=False))
         return super().create_subscription(msg_type, topic, callback, qos_profile, **kwargs)
 
+    def __init__(self, *args, **kwargs) -> None:
+        self._threaded_subscriptions: list[ThreadedSubscription] = []
+        super().__init__(*args, **kwargs)
+
     def close(self) -> None:
         """Release resources and flush outputs (override); the context may already be shut down."""
 
@@ -55,16 +59,16 @@ class VigsNode(Node):
         """A subscription served by a thread of its own (:class:`ThreadedSubscription`), for a high-rate topic;
         ``callback`` gets every message queued, as a list, on that thread. Stopped by ``destroy_node``."""
         reader = ThreadedSubscription(self, msg_type, topic, callback, qos_profile)
-        self._threaded_subscriptions = [*getattr(self, "_threaded_subscriptions", []), reader]
+        self._threaded_subscriptions.append(reader)
         return reader
 
     @property
     def failed_threads(self) -> list[str]:
         """Threaded subscriptions whose callback raised (the process then shuts down and exits non-zero)."""
-        return [r.topic for r in getattr(self, "_threaded_subscriptions", []) if r.error is not None]
+        return [r.topic for r in self._threaded_subscriptions if r.error is not None]
 
     def destroy_node(self) -> None:
-        for reader in getattr(self, "_threaded_subscriptions", []):
+        for reader in self._threaded_subscriptions:
             reader.stop()
         super().destroy_node()
 
@@ -86,9 +90,9 @@ class ThreadedSubscription:
     """A subscription waited on and taken by a dedicated thread, outside the executor.
 
     rclpy's executor rebuilds its wait set from every entity of the node (parameter services, timers, event
-    handlers) and takes one message per round: about 1.35 ms of CPU per message against 0.57 ms for one
-    subscription in a wait set of its own (docs/benchmarks.md, live operation, tenth session). At 200 Hz the IMU
-    is the graph's most frequent message, taken by two processes. The callback runs on this thread, so it must
+    handlers) and takes one message per round, at several times the CPU per message of one subscription in a
+    wait set of its own (docs/benchmarks.md, live operation, tenth session); the IMU, at 200 Hz the graph's most
+    frequent message, is taken by two processes. The callback runs on this thread, so it must
     only share state with the node's other callbacks under a lock. An exception in it is printed and shuts the
     context down (the node's process exits non-zero)."""
 
@@ -206,7 +210,8 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     try:
         for factory in factories:
             nodes.append(factory(context=context))
-        nice = getattr(nodes[0], "process_nice", 0) if len(nodes) == 1 else 0
+        alone = nodes[0] if len(nodes) == 1 else None
+        nice = int(alone.get_parameter("process_nice").value) if alone and alone.has_parameter("process_nice") else 0
         if nice and not renice(nice):
             nodes[0].get_logger().warn(f"process_nice {nice}: not permitted (a negative niceness needs root or "
                                        f"CAP_SYS_NICE); the process keeps its priority")
