@@ -177,16 +177,34 @@ def renice(increment: int) -> bool:
             pass
         except PermissionError:
             done = False
-    autogroup = "/proc/self/autogroup"
-    if os.getsid(0) == os.getpid() and os.path.exists(autogroup):   # never renice a shell's session
+    now = autogroup_nice()
+    if os.getsid(0) == os.getpid() and now is not None:   # never renice a shell's session
         try:
-            with open(autogroup) as f:
-                now = int(f.read().split("nice")[1])
-            with open(autogroup, "w") as f:
+            with open(_AUTOGROUP, "w") as f:
                 f.write(str(max(-20, min(19, now + int(increment)))))
-        except (OSError, ValueError, IndexError):
+        except OSError:
             done = False
     return done
+
+
+_AUTOGROUP = "/proc/self/autogroup"
+
+
+def autogroup_nice() -> int | None:
+    """The niceness of this process's scheduling autogroup; None where there is none: a kernel without autogroup
+    scheduling, or a process in a CPU cgroup of its own (a container, a systemd service), where the kernel shows
+    the file empty and the cgroup, not the session, shares the CPU."""
+    try:
+        with open(_AUTOGROUP) as f:
+            fields = f.read().split()          # "/autogroup-<id> nice <n>"
+    except OSError:
+        return None
+    if len(fields) == 3 and fields[1] == "nice":
+        try:
+            return int(fields[2])
+        except ValueError:
+            return None
+    return None
 
 
 def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None = None,
