@@ -3,6 +3,7 @@ anchored pose/scale updates, asynchronous operation, saving."""
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -183,3 +184,77 @@ def test_drain_at_shutdown_inserts_every_queued_keyframe_without_refinement():
     _feed(refined, angles)
     refined.process_pending()
     assert mapper.stats.mapping_seconds < 0.5 * refined.stats.mapping_seconds
+
+
+def test_inbox_folds_pose_corrections_and_corrects_queued_keyframes_in_place():
+    """Corrections wait as one batch, newest pose and product of scales per keyframe; a queued keyframe is
+    corrected where it waits; what is pending stays the queued keyframes plus one."""
+    from types import SimpleNamespace
+
+    from vigs_core.mapping.inbox import MapperInbox
+
+    inbox = MapperInbox()
+    eye = torch.eye(4, dtype=torch.float64)
+    T1, T2, Ta = (se3_exp(torch.full((6,), x, dtype=torch.float64)) for x in (0.1, 0.2, 0.3))
+    queued = SimpleNamespace(id=1, T_WC=eye, depth=torch.ones(2, 2))
+    inbox.put_keyframe(queued)
+    for _ in range(50):
+        inbox.put_poses({0: T1, 1: Ta}, {0: 2.0, 1: 0.5})
+        inbox.put_poses({0: T2}, {0: 1.5})
+    assert len(inbox) == 2
+    kind, poses, scales = inbox.take()
+    assert kind == "poses" and list(poses) == [0] and torch.equal(poses[0], T2)
+    assert scales == {0: pytest.approx(3.0 ** 50)}
+    inbox.done()
+    kind, kf, still_queued = inbox.take()
+    assert kind == "keyframe" and kf is queued and still_queued == 0
+    assert torch.equal(kf.T_WC, Ta) and torch.allclose(kf.depth, torch.full((2, 2), 0.5 ** 50))
+    inbox.done()
+    assert inbox.take(timeout=0.01) is None and len(inbox) == 0
+
+
+def test_folded_pose_updates_move_the_map_as_the_same_updates_applied_one_by_one():
+    T0 = orbit_pose(0.0)
+    T1 = se3_exp(torch.tensor([0.1, 0.0, -0.1, 0.05, 0.0, 0.1], dtype=torch.float64)) @ T0
+    T2 = se3_exp(torch.tensor([-0.2, 0.1, 0.0, 0.0, 0.1, -0.1], dtype=torch.float64)) @ T0
+    one_by_one, folded = _mapper(iterations=0), _mapper(iterations=0)
+    for m in (one_by_one, folded):
+        _feed(m, [0.0])
+        m.process_pending()
+    one_by_one.update_keyframe_poses({0: T1}, {0: 1.3})
+    one_by_one.process_pending()
+    one_by_one.update_keyframe_poses({0: T2}, {0: 0.9})
+    one_by_one.process_pending()
+    folded.update_keyframe_poses({0: T1}, {0: 1.3})
+    folded.update_keyframe_poses({0: T2}, {0: 0.9})
+    assert folded.pending() == 1 and folded.process_pending() == 1
+    assert torch.allclose(folded.map.means, one_by_one.map.means, atol=1e-5)
+    assert torch.allclose(folded.map.log_scales, one_by_one.map.log_scales, atol=1e-5)
+    assert torch.allclose(folded.map.quats, one_by_one.map.quats, atol=1e-5)
+    assert torch.equal(folded.keyframes[0].T_WC, T2)
+    assert torch.allclose(folded.keyframes[0].depth, one_by_one.keyframes[0].depth)
+
+
+def test_a_mapper_behind_inserts_the_oldest_keyframes_unrefined_and_refines_when_idle():
+    """``max_backlog``: with four keyframes queued and a backlog of one, the two with more than one behind them
+    go in unrefined. ``refine_when_idle``: with nothing queued the worker keeps optimising."""
+    mapper = _mapper(iterations=2, max_backlog=1)
+    _feed(mapper, [0.0, 0.3, 0.6, 0.9])
+    assert mapper.process_pending() == 4
+    assert mapper.stats.keyframes == 4 and mapper.stats.unrefined == 2
+
+    idle = _mapper(iterations=1, refine_when_idle=True)
+    _feed(idle, [0.0])
+    idle.step()
+    T = orbit_pose(0.0)
+    image, _ = raycast(T, CAMERA)
+    before = psnr(idle.render(T).color, image)
+    idle.run_async()
+    try:
+        deadline = time.monotonic() + 60
+        while idle.stats.idle_steps < 20 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        idle.stop()
+    assert idle.stats.idle_steps >= 20 and idle.stats.keyframes == 1
+    assert psnr(idle.render(T).color, image) > before + 0.5

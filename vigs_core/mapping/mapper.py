@@ -20,16 +20,18 @@ For every new keyframe (image, depth, pose ``T_WC``):
    exceeds ``prune_max_angular`` times their distance to their anchor keyframe (oversized) are removed.
 
 Keyframe pose/scale corrections move anchored Gaussians in one batch (:mod:`vigs_core.mapping.anchor`).
-The mapper is fed through a queue: :meth:`GaussianMapper.add_keyframe` and
-:meth:`GaussianMapper.update_keyframe_poses` only enqueue, so tracking never waits for mapping; events are
-applied in order by :meth:`GaussianMapper.step` (synchronous use) or by the worker thread of
-:meth:`GaussianMapper.run_async`. Rendering and saving take the map lock between optimisation steps.
+The mapper is fed through an inbox (:mod:`vigs_core.mapping.inbox`): :meth:`GaussianMapper.add_keyframe` and
+:meth:`GaussianMapper.update_keyframe_poses` only enqueue, so tracking never waits for mapping; pose corrections
+are folded into one batch, applied before the next keyframe; keyframes are inserted in order by
+:meth:`GaussianMapper.step` (synchronous use) or by the worker thread of :meth:`GaussianMapper.run_async`. A live
+mapper that falls behind inserts the oldest queued keyframes without refinement (``max_backlog``), and with
+``refine_when_idle`` spends the time when nothing is queued on further optimisation steps. Rendering and saving
+take the map lock between optimisation steps.
 """
 from __future__ import annotations
 
 import ctypes
 import math
-import queue
 import random
 import threading
 import time
@@ -43,6 +45,7 @@ import torch
 from vigs_core.geometry import se3_inverse
 from vigs_core.mapping.anchor import anchored_update
 from vigs_core.mapping.gaussians import PARAMETER_FIELDS, GaussianMap
+from vigs_core.mapping.inbox import MapperInbox
 from vigs_core.mapping.init import gaussians_from_depth
 from vigs_core.mapping.metrics import psnr, ssim
 from vigs_core.mapping.optimizer import RowAdam
@@ -79,6 +82,12 @@ class MapperConfig:
         seed: seed of the keyframe sampler.
         retain_heap: keep freed heap memory in the process (see :func:`retain_freed_heap`; glibc only,
             process-wide) instead of returning it to the kernel after every step.
+        max_backlog: when more than this many keyframes wait behind the one being inserted, it is inserted
+            without refinement (one render for the densification mask), so a live mapper that cannot keep up
+            stays at most this far behind; 0: every keyframe is refined however long the queue (offline runs).
+        refine_when_idle: the worker thread (:meth:`GaussianMapper.run_async`), when nothing is queued, keeps
+            optimising, one step at a time on a keyframe drawn uniformly from the mapped ones, so CPU left
+            over improves the map (a live mapper at low priority); off: it waits.
     """
 
     iterations: int = 10
@@ -104,12 +113,14 @@ class MapperConfig:
     max_per_tile: int = 96
     seed: int = 0
     retain_heap: bool = True
+    max_backlog: int = 0
+    refine_when_idle: bool = False
 
     def __post_init__(self) -> None:
-        if self.iterations < 0 or self.window < 1 or self.global_keyframes < 0:
+        if self.iterations < 0 or self.window < 1 or self.global_keyframes < 0 or self.max_backlog < 0:
             raise ValueError(
-                f"need iterations >= 0, window >= 1, global_keyframes >= 0; got {self.iterations}, "
-                f"{self.window}, {self.global_keyframes}"
+                f"need iterations >= 0, window >= 1, global_keyframes >= 0, max_backlog >= 0; got "
+                f"{self.iterations}, {self.window}, {self.global_keyframes}, {self.max_backlog}"
             )
         if not 0 < self.render_scale <= 1:
             raise ValueError(f"render_scale must be in (0, 1], got {self.render_scale}")
@@ -143,9 +154,12 @@ class MapDelta:
 
 @dataclass
 class MapperStats:
-    """Counters of a mapper: keyframes integrated, seconds spent on them, Gaussians added/pruned."""
+    """Counters of a mapper: keyframes integrated (``unrefined`` of them without optimisation steps: behind or at
+    shutdown), seconds spent on them, optimisation steps taken while idle, Gaussians added/pruned."""
 
     keyframes: int = 0
+    unrefined: int = 0
+    idle_steps: int = 0
     mapping_seconds: float = 0.0
     added: int = 0
     pruned: int = 0
@@ -250,7 +264,7 @@ class GaussianMapper:
         self._next_id = 0
         self._rng = random.Random(c.seed)
         self._lock = threading.RLock()
-        self._events: queue.Queue = queue.Queue()
+        self._inbox = MapperInbox()
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
         self._new = torch.zeros(0, dtype=torch.bool, device=self.device)
@@ -269,28 +283,27 @@ class GaussianMapper:
             _prepare_depth(depth, size).to(self.device),
             timestamp_ns,
         )
-        self._events.put(("keyframe", kf))
+        self._inbox.put_keyframe(kf)
 
     def update_keyframe_poses(self, poses: dict[int, object], scales: dict[int, float] | None = None) -> None:
         """Queue corrected keyframe poses ``{kf_id: T_WC (4, 4)}`` and optional depth scale corrections
         ``{kf_id: s}``; anchored Gaussians follow (Eq. 6-7). Unknown ids are ignored (listed in ``stats``)."""
         poses = {int(k): torch.as_tensor(v, dtype=torch.float64).reshape(4, 4).clone() for k, v in poses.items()}
-        self._events.put(("poses", poses, dict(scales or {})))
+        self._inbox.put_poses(poses, {int(k): float(s) for k, s in (scales or {}).items()})
 
     def pending(self) -> int:
-        """Number of queued events not yet applied."""
-        return self._events.qsize()
+        """Number of events not yet applied: queued keyframes, plus one for pending pose corrections."""
+        return len(self._inbox)
 
     def step(self) -> bool:
-        """Apply the next queued event (synchronous use); False when the queue was empty."""
-        try:
-            event = self._events.get_nowait()
-        except queue.Empty:
+        """Apply the next pending event (synchronous use); False when there was none."""
+        event = self._inbox.take()
+        if event is None:
             return False
         try:
             self._apply(event)
         finally:
-            self._events.task_done()
+            self._inbox.done()
         return True
 
     def process_pending(self) -> int:
@@ -307,9 +320,8 @@ class GaussianMapper:
         time to refine it. Returns how many events are left."""
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
-            try:
-                event = self._events.get_nowait()
-            except queue.Empty:
+            event = self._inbox.take()
+            if event is None:
                 break
             try:
                 if event[0] == "keyframe":
@@ -317,7 +329,7 @@ class GaussianMapper:
                 else:
                     self._apply(event)
             finally:
-                self._events.task_done()
+                self._inbox.done()
         return self.pending()
 
     def run_async(self) -> None:
@@ -330,7 +342,7 @@ class GaussianMapper:
 
     def wait_idle(self) -> None:
         """Block until every queued event has been applied (by the worker or by :meth:`step`)."""
-        self._events.join()
+        self._inbox.wait_empty()
 
     def stop(self) -> None:
         """Stop the worker thread after the event it is applying (queued events stay queued)."""
@@ -404,21 +416,32 @@ class GaussianMapper:
 
     # ------------------------------------------------------------------ internals
     def _work(self) -> None:
+        idle = self.config.refine_when_idle
         while not self._stop.is_set():
-            try:
-                event = self._events.get(timeout=0.05)
-            except queue.Empty:
+            event = self._inbox.take(timeout=0.0 if idle and self.keyframes else 0.05)
+            if event is None:
+                if idle and self.keyframes:
+                    self._idle_step()
                 continue
             try:
                 self._apply(event)
             finally:
-                self._events.task_done()
+                self._inbox.done()
 
     def _apply(self, event: tuple) -> None:
         if event[0] == "keyframe":
-            self._integrate(event[1])
+            _, kf, still_queued = event
+            backlog = self.config.max_backlog
+            self._integrate(kf, optimise=backlog == 0 or still_queued <= backlog)
         else:
             self._move_keyframes(event[1], event[2])
+
+    def _idle_step(self) -> None:
+        """One optimisation step (colour and depth) on a keyframe drawn uniformly from the mapped ones."""
+        with self._lock:
+            kf = self.keyframes[self._rng.choice(sorted(self.keyframes))]
+            self._optimise_on(kf, self.config.lambda_depth)
+        self.stats.idle_steps += 1
 
     def _view(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> tuple[torch.Tensor, ...]:
         """``T_CW`` of the view and the rows of ``gmap`` in its frustum (:func:`frustum_rows`): only these
@@ -482,6 +505,7 @@ class GaussianMapper:
         with self._lock:
             self._prune()
         self.stats.keyframes += 1
+        self.stats.unrefined += not optimise
         self.stats.mapping_seconds += time.perf_counter() - t0
 
     def _schedule(self, new_id: int) -> list[int]:

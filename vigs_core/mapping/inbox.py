@@ -1,0 +1,87 @@
+"""What waits for the mapper: keyframes in order and keyframe pose corrections folded into one batch.
+
+Tracking sends a keyframe pose update after most bundle adjustments, so a FIFO of events grows with every update
+while the mapper is busy, and applying them one by one moves the same Gaussians again and again. The inbox keeps
+at most one pending correction per keyframe: anchored moves compose (Eq. 6-7 of VIGS-SLAM: moving a keyframe
+T0 -> T1 with scale s1 and then T1 -> T2 with s2 is the move T0 -> T2 with scale s1 s2), so the newest pose and
+the product of the scale corrections stand for all of them. A correction of a keyframe still queued is applied to
+it in place (it is inserted at its newest pose, its depth rescaled), so what is pending is bounded by the
+keyframes queued plus one correction batch.
+"""
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Any
+
+import torch
+
+
+class MapperInbox:
+    """Thread-safe inbox of a :class:`vigs_core.mapping.GaussianMapper` (module docstring).
+
+    :meth:`take` hands out the pending pose corrections first (one ``("poses", poses, scales)`` batch), then the
+    oldest queued keyframe (``("keyframe", kf, still_queued)``); :meth:`done` marks the taken event applied.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._keyframes: deque[Any] = deque()
+        self._poses: dict[int, torch.Tensor] = {}
+        self._scales: dict[int, float] = {}
+        self._busy = 0
+
+    def put_keyframe(self, kf: Any) -> None:
+        """Queue a keyframe (an object with ``id``, ``T_WC`` (4, 4) and ``depth``)."""
+        with self._cond:
+            self._keyframes.append(kf)
+            self._cond.notify_all()
+
+    def put_poses(self, poses: dict[int, torch.Tensor], scales: dict[int, float]) -> None:
+        """Fold corrected poses ``{kf_id: T_WC}`` and scale corrections ``{kf_id: s}`` into what is pending."""
+        with self._cond:
+            queued = {kf.id: kf for kf in self._keyframes}
+            for k, T in poses.items():
+                s = float(scales.get(k, 1.0))
+                kf = queued.get(k)
+                if kf is not None:           # not inserted yet: insert it where it is now
+                    kf.T_WC = T
+                    if s != 1.0:
+                        kf.depth = kf.depth * s
+                    continue
+                self._poses[k] = T
+                if s != 1.0:
+                    self._scales[k] = self._scales.get(k, 1.0) * s
+            self._cond.notify_all()
+
+    def take(self, timeout: float | None = 0.0) -> tuple | None:
+        """The next event, waiting up to ``timeout`` seconds (None: no limit) for one; None when there is none."""
+        with self._cond:
+            if not self._cond.wait_for(self._ready, timeout):
+                return None
+            self._busy += 1
+            if self._poses:
+                event = ("poses", self._poses, self._scales)
+                self._poses, self._scales = {}, {}
+                return event
+            kf = self._keyframes.popleft()
+            return ("keyframe", kf, len(self._keyframes))
+
+    def done(self) -> None:
+        """The event from :meth:`take` is applied."""
+        with self._cond:
+            self._busy -= 1
+            self._cond.notify_all()
+
+    def wait_empty(self) -> None:
+        """Block until nothing is pending and no taken event is being applied."""
+        with self._cond:
+            self._cond.wait_for(lambda: not self._ready() and self._busy == 0)
+
+    def __len__(self) -> int:
+        """Events pending: the queued keyframes plus one for a pending correction batch."""
+        with self._cond:
+            return len(self._keyframes) + (1 if self._poses else 0)
+
+    def _ready(self) -> bool:
+        return bool(self._poses) or bool(self._keyframes)
