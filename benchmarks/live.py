@@ -14,7 +14,8 @@ and the last ``/vigs/status`` of every node. Per run:
   time between its first and last message);
 * CPU share (user + system over the run's wall time) and peak RSS per process (psutil, sampled every 0.2 s);
 * the deepest frontend queues (IMU samples and frames waiting for the tracking thread);
-* keyframes the mapper received and the events it still had pending at its last status;
+* keyframes the mapper received and mapped (how many unrefined), its idle optimisation steps, and the events
+  it had pending at its last status and at most over the run;
 * the IMU initialisation's stamp (s after the first frame); SE(3) ATE of the live ``trajectory.txt`` and of the
   recorded ``/odometry`` after the IMU initialisation, against the ground truth beside the bag.
 
@@ -68,6 +69,7 @@ class Probe:
         self.rx: dict[str, dict[tuple[int, int], float]] = {k: {} for k in keys}   # reception by DDS, s
         self.odometry = []
         self.status: dict[str, dict[str, str]] = {}
+        self.mapper_pending_max = 0
 
         def record(key, m, info):
             stamp = (m.header.stamp.sec, m.header.stamp.nanosec)
@@ -84,6 +86,9 @@ class Probe:
         def on_status(m):
             for st in m.status:
                 self.status[st.name] = {kv.key: kv.value for kv in st.values}
+                if st.name.endswith("mapper") and "pending_events" in self.status[st.name]:
+                    pending = int(self.status[st.name]["pending_events"])
+                    self.mapper_pending_max = max(self.mapper_pending_max, pending)
 
         sub = self.node.create_subscription
         sub(CompressedImage if compressed else Image, "/image", stamp_of("image"), sensor_qos(100))
@@ -224,7 +229,9 @@ def summarize(r: dict, gt) -> dict:
         "init_s": None if init_s is None or first_image is None else init_s - (first_image[0] + first_image[1] * 1e-9),
         "ate_traj": ate, "ate_odom": odometry_ate_after_init(probe, gt, init_s),
         "queue_max": rep.get("queue_max"), "mapper_kf": mapper.get("keyframes_in"),
-        "mapper_pending": mapper.get("pending_events"), "wall_s": r["wall_s"],
+        "mapper_pending": mapper.get("pending_events"), "mapper_pending_max": probe.mapper_pending_max,
+        "mapper_mapped": mapper.get("keyframes_mapped"), "mapper_idle_steps": mapper.get("idle_steps"),
+        "wall_s": r["wall_s"],
         "cpu": {k: 100 * v / r["wall_s"] for k, v in sorted(r["cpu_s"].items())},
         "rss": dict(sorted(r["rss_mb"].items())),
     }
@@ -291,7 +298,8 @@ def main(argv: list[str] | None = None) -> int:
               f"p95 by the probe's callbacks: odometry {f['lat_p95_callback']:.1f}, IMU odometry "
               f"{f['imu_lat_p95_callback']:.2f} ms; deepest queues {f['queue_max']}; images lost before the "
               f"frontend {f['lost']}; mapper keyframes "
-              f"{f['mapper_kf']}, pending {f['mapper_pending']}")
+              f"{f['mapper_kf']}, mapped {f['mapper_mapped']}, idle steps {f['mapper_idle_steps']}, pending "
+              f"{f['mapper_pending']} at the last status (at most {f['mapper_pending_max']})")
     if args.json:
         Path(args.json).write_text(json.dumps([{"bag": n, "run": l, **f} for n, l, f in rows], indent=2))
     return 0
