@@ -206,8 +206,8 @@ def test_inbox_folds_pose_corrections_and_corrects_queued_keyframes_in_place():
     assert kind == "poses" and list(poses) == [0] and torch.equal(poses[0], T2)
     assert scales == {0: pytest.approx(3.0 ** 50)}
     inbox.done()
-    kind, kf, still_queued = inbox.take()
-    assert kind == "keyframe" and kf is queued and still_queued == 0
+    kind, kf = inbox.take()
+    assert kind == "keyframe" and kf is queued
     assert torch.equal(kf.T_WC, Ta) and torch.allclose(kf.depth, torch.full((2, 2), 0.5 ** 50))
     inbox.done()
     assert inbox.take(timeout=0.01) is None and len(inbox) == 0
@@ -235,13 +235,29 @@ def test_folded_pose_updates_move_the_map_as_the_same_updates_applied_one_by_one
     assert torch.allclose(folded.keyframes[0].depth, one_by_one.keyframes[0].depth)
 
 
-def test_a_mapper_behind_inserts_the_oldest_keyframes_unrefined_and_refines_when_idle():
-    """``max_backlog``: with four keyframes queued and a backlog of one, the two with more than one behind them
-    go in unrefined. ``refine_when_idle``: with nothing queued the worker keeps optimising."""
+def test_a_mapper_behind_cuts_refinement_short_and_refines_when_idle():
+    """``max_backlog``: with four keyframes queued and a backlog of one, the two with more than one waiting behind
+    them go in without steps; one arriving during a keyframe's steps cuts them short. ``refine_when_idle``: with
+    nothing queued the worker keeps optimising."""
     mapper = _mapper(iterations=2, max_backlog=1)
     _feed(mapper, [0.0, 0.3, 0.6, 0.9])
     assert mapper.process_pending() == 4
-    assert mapper.stats.keyframes == 4 and mapper.stats.unrefined == 2
+    assert mapper.stats.keyframes == 4 and mapper.stats.cut_short == 2 and mapper.stats.steps == 4
+
+    late = _mapper(iterations=10, max_backlog=1)
+    _feed(late, [0.0])
+    steps = []
+    real_step = late._optimise_on
+
+    def step_then_arrivals(kf, lambda_depth):   # two keyframes arrive during the third step
+        real_step(kf, lambda_depth)
+        steps.append(kf.id)
+        if len(steps) == 3:
+            _feed(late, [0.3, 0.6], first_id=1)
+
+    late._optimise_on = step_then_arrivals
+    assert late.step()
+    assert late.stats.steps == 3 and late.stats.cut_short == 1 and late.pending() == 2
 
     idle = _mapper(iterations=1, refine_when_idle=True)
     _feed(idle, [0.0])

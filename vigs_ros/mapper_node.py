@@ -11,9 +11,9 @@ Topics (names are parameters; see params/mapper.yaml):
   disparity > 0) + pose; the mapper is created on the first keyframe, with its (undistorted pinhole) intrinsics.
 * in ``pose_update_topics`` (vigs_msgs/KeyframePoseUpdate): the frontend's BA updates and the loop detector's
   PGBA updates; anchored Gaussians follow their keyframes. Updates waiting for the mapper are folded into one
-  batch; when more than ``mapper.max_backlog`` keyframes wait, the oldest go in unrefined, and with
-  ``mapper.refine_when_idle`` the mapper keeps optimising while nothing waits (status: ``keyframes_mapped``,
-  ``idle_steps``).
+  batch; when more than ``mapper.max_backlog`` keyframes wait, the keyframe being inserted gets no further
+  steps, and with ``mapper.refine_when_idle`` the mapper keeps optimising while nothing waits (status:
+  ``keyframes_mapped``, ``steps_per_keyframe``, ``keyframes_cut_short``, ``idle_steps``).
 * out ``delta_topic`` (vigs_msgs/GaussianDelta, reliable): every ``delta_period_s``, the Gaussians added,
   changed and removed since the previous delta, in activated units (scales in m, opacity in [0, 1]).
 * out ``cloud_topic`` (sensor_msgs/PointCloud2, transient-local): every ``cloud_period_s`` when the map changed,
@@ -125,7 +125,9 @@ class MapperNode(VigsNode):
         self.status.info["gaussians"] = str(len(self.mapper.map))
         self.status.info["pending_events"] = str(self.mapper.pending())
         stats = self.mapper.stats
-        self.status.info["keyframes_mapped"] = f"{stats.keyframes} ({stats.unrefined} unrefined: behind)"
+        self.status.info["keyframes_mapped"] = str(stats.keyframes)
+        self.status.info["steps_per_keyframe"] = f"{stats.steps / max(stats.keyframes, 1):.1f}"
+        self.status.info["keyframes_cut_short"] = str(stats.cut_short)
         self.status.info["idle_steps"] = str(stats.idle_steps)
         if len(delta.added) == 0 and len(delta.changed) == 0 and len(delta.removed_ids) == 0:
             return

@@ -21,7 +21,7 @@ class MapperInbox:
     """Thread-safe inbox of a :class:`vigs_core.mapping.GaussianMapper` (module docstring).
 
     :meth:`take` hands out the pending pose corrections first (one ``("poses", poses, scales)`` batch), then the
-    oldest queued keyframe (``("keyframe", kf, still_queued)``); :meth:`done` marks the taken event applied.
+    oldest queued keyframe (``("keyframe", kf)``); :meth:`done` marks the taken event applied.
     """
 
     def __init__(self) -> None:
@@ -64,8 +64,7 @@ class MapperInbox:
                 event = ("poses", self._poses, self._scales)
                 self._poses, self._scales = {}, {}
                 return event
-            kf = self._keyframes.popleft()
-            return ("keyframe", kf, len(self._keyframes))
+            return ("keyframe", self._keyframes.popleft())
 
     def done(self) -> None:
         """The event from :meth:`take` is applied."""
@@ -77,6 +76,11 @@ class MapperInbox:
         """Block until nothing is pending and no taken event is being applied."""
         with self._cond:
             self._cond.wait_for(lambda: not self._ready() and self._busy == 0)
+
+    def keyframes_waiting(self) -> int:
+        """Keyframes queued (not yet taken)."""
+        with self._cond:
+            return len(self._keyframes)
 
     def __len__(self) -> int:
         """Events pending: the queued keyframes plus one for a pending correction batch."""

@@ -82,9 +82,10 @@ class MapperConfig:
         seed: seed of the keyframe sampler.
         retain_heap: keep freed heap memory in the process (see :func:`retain_freed_heap`; glibc only,
             process-wide) instead of returning it to the kernel after every step.
-        max_backlog: when more than this many keyframes wait behind the one being inserted, it is inserted
-            without refinement (one render for the densification mask), so a live mapper that cannot keep up
-            stays at most this far behind; 0: every keyframe is refined however long the queue (offline runs).
+        max_backlog: when more than this many keyframes wait, the keyframe being inserted gets no further
+            optimisation steps (its Gaussians are in the map; the next keyframe's steps and idle steps refine
+            them), so a live mapper that cannot keep up stays about this far behind; 0: every keyframe gets its
+            ``iterations`` however long the queue (offline runs).
         refine_when_idle: the worker thread (:meth:`GaussianMapper.run_async`), when nothing is queued, keeps
             optimising, one step at a time on a keyframe drawn uniformly from the mapped ones, so CPU left
             over improves the map (a live mapper at low priority); off: it waits.
@@ -154,11 +155,13 @@ class MapDelta:
 
 @dataclass
 class MapperStats:
-    """Counters of a mapper: keyframes integrated (``unrefined`` of them without optimisation steps: behind or at
-    shutdown), seconds spent on them, optimisation steps taken while idle, Gaussians added/pruned."""
+    """Counters of a mapper: keyframes integrated (``cut_short`` of them with fewer than ``iterations``
+    optimisation steps: behind, or at shutdown), their optimisation ``steps``, seconds spent on them, steps taken
+    while idle, Gaussians added/pruned."""
 
     keyframes: int = 0
-    unrefined: int = 0
+    cut_short: int = 0
+    steps: int = 0
     idle_steps: int = 0
     mapping_seconds: float = 0.0
     added: int = 0
@@ -430,9 +433,7 @@ class GaussianMapper:
 
     def _apply(self, event: tuple) -> None:
         if event[0] == "keyframe":
-            _, kf, still_queued = event
-            backlog = self.config.max_backlog
-            self._integrate(kf, optimise=backlog == 0 or still_queued <= backlog)
+            self._integrate(event[1])
         else:
             self._move_keyframes(event[1], event[2])
 
@@ -499,13 +500,18 @@ class GaussianMapper:
             )  # fmt: skip
             self._next_id += len(new)
             self._append(new)
+        steps = 0
         for kf_step in self._schedule(kf.id) if optimise else ():
+            if c.max_backlog and self._inbox.keyframes_waiting() > c.max_backlog:
+                break
             with self._lock:
                 self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
+            steps += 1
         with self._lock:
             self._prune()
         self.stats.keyframes += 1
-        self.stats.unrefined += not optimise
+        self.stats.steps += steps
+        self.stats.cut_short += steps < c.iterations
         self.stats.mapping_seconds += time.perf_counter() - t0
 
     def _schedule(self, new_id: int) -> list[int]:
