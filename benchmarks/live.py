@@ -14,8 +14,8 @@ and the last ``/vigs/status`` of every node. Per run:
   time between its first and last message);
 * CPU share (user + system over the run's wall time) and peak RSS per process (psutil, sampled every 0.2 s);
 * the deepest frontend queues (IMU samples and frames waiting for the tracking thread);
-* keyframes the mapper received and mapped (steps per keyframe, how many cut short), its idle steps, and the events
-  it had pending at its last status and at most over the run;
+* keyframes the mapper received, mapped (steps per keyframe, how many cut short) and deferred, its idle steps, and
+  the events it had pending at its last status and at most over the run;
 * the IMU initialisation's stamp (s after the first frame); SE(3) ATE of the live ``trajectory.txt`` and of the
   recorded ``/odometry`` after the IMU initialisation, against the ground truth beside the bag.
 
@@ -232,6 +232,7 @@ def summarize(r: dict, gt) -> dict:
         "mapper_pending": mapper.get("pending_events"), "mapper_pending_max": probe.mapper_pending_max,
         "mapper_mapped": mapper.get("keyframes_mapped"), "mapper_idle_steps": mapper.get("idle_steps"),
         "mapper_steps_per_kf": mapper.get("steps_per_keyframe"), "mapper_cut_short": mapper.get("keyframes_cut_short"),
+        "mapper_deferred": mapper.get("keyframes_deferred"),
         "wall_s": r["wall_s"],
         "cpu": {k: 100 * v / r["wall_s"] for k, v in sorted(r["cpu_s"].items())},
         "rss": dict(sorted(r["rss_mb"].items())),
@@ -300,7 +301,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{f['imu_lat_p95_callback']:.2f} ms; deepest queues {f['queue_max']}; images lost before the "
               f"frontend {f['lost']}; mapper keyframes "
               f"{f['mapper_kf']}, mapped {f['mapper_mapped']} ({f['mapper_steps_per_kf']} steps each, "
-              f"{f['mapper_cut_short']} cut short), idle steps {f['mapper_idle_steps']}, pending "
+              f"{f['mapper_cut_short']} cut short), deferred {f['mapper_deferred']}, idle steps "
+              f"{f['mapper_idle_steps']}, pending "
               f"{f['mapper_pending']} at the last status (at most {f['mapper_pending_max']})")
     if args.json:
         Path(args.json).write_text(json.dumps([{"bag": n, "run": l, **f} for n, l, f in rows], indent=2))

@@ -235,21 +235,28 @@ def test_folded_pose_updates_move_the_map_as_the_same_updates_applied_one_by_one
     assert torch.allclose(folded.keyframes[0].depth, one_by_one.keyframes[0].depth)
 
 
-def test_a_mapper_behind_cuts_refinement_short_and_refines_when_idle():
-    """``max_backlog``: with four keyframes queued and a backlog of one, the two with more than one waiting behind
-    them go in without steps; one arriving during a keyframe's steps cuts them short. ``refine_when_idle``: with
-    nothing queued the worker keeps optimising."""
-    mapper = _mapper(iterations=2, max_backlog=1)
-    _feed(mapper, [0.0, 0.3, 0.6, 0.9])
-    assert mapper.process_pending() == 4
-    assert mapper.stats.keyframes == 4 and mapper.stats.cut_short == 2 and mapper.stats.steps == 4
+def test_a_mapper_behind_keeps_up_with_the_newest_keyframes_and_maps_the_rest_when_idle():
+    """``max_backlog``: the queue keeps the newest keyframes; older ones are deferred and mapped only when nothing
+    else waits, newest first, with the local window around them; a keyframe arriving into a full queue during
+    a keyframe's steps cuts them short. ``refine_when_idle``: with nothing waiting the worker keeps optimising."""
+    mapper = _mapper(iterations=2, max_backlog=2)
+    _feed(mapper, [0.0, 0.3, 0.6, 0.9, 1.2])
+    assert mapper.pending() == 2 and mapper.deferred() == 3
+    order = []
+    real_integrate = mapper._integrate
+    mapper._integrate = lambda kf, optimise=True: (order.append(kf.id), real_integrate(kf, optimise))
+    assert mapper.process_pending() == 5 and mapper.deferred() == 0
+    assert order == [3, 4, 2, 1, 0]
+    assert mapper.stats.keyframes == 5 and mapper.stats.steps == 10 and mapper.stats.cut_short == 0
+    mapper.config.window, mapper.config.global_keyframes, mapper.config.iterations = 2, 0, 4
+    assert mapper._schedule(1) == [1, 0, 1, 0] and mapper._schedule(4) == [4, 3, 4, 3]   # its own local window
 
-    late = _mapper(iterations=10, max_backlog=1)
+    late = _mapper(iterations=10, max_backlog=2)
     _feed(late, [0.0])
     steps = []
     real_step = late._optimise_on
 
-    def step_then_arrivals(kf, lambda_depth):   # two keyframes arrive during the third step
+    def step_then_arrivals(kf, lambda_depth):   # two keyframes arrive during the third step: the queue is full
         real_step(kf, lambda_depth)
         steps.append(kf.id)
         if len(steps) == 3:

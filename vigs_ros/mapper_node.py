@@ -11,9 +11,10 @@ Topics (names are parameters; see params/mapper.yaml):
   disparity > 0) + pose; the mapper is created on the first keyframe, with its (undistorted pinhole) intrinsics.
 * in ``pose_update_topics`` (vigs_msgs/KeyframePoseUpdate): the frontend's BA updates and the loop detector's
   PGBA updates; anchored Gaussians follow their keyframes. Updates waiting for the mapper are folded into one
-  batch; when more than ``mapper.max_backlog`` keyframes wait, the keyframe being inserted gets no further
-  steps, and with ``mapper.refine_when_idle`` the mapper keeps optimising while nothing waits (status:
-  ``keyframes_mapped``, ``steps_per_keyframe``, ``keyframes_cut_short``, ``idle_steps``).
+  batch; at most ``mapper.max_backlog`` keyframes are queued (older ones are deferred: mapped when nothing
+  else waits, or at shutdown), and with ``mapper.refine_when_idle`` the mapper keeps optimising while nothing
+  waits (status: ``keyframes_mapped``, ``keyframes_deferred``, ``steps_per_keyframe``, ``keyframes_cut_short``,
+  ``idle_steps``).
 * out ``delta_topic`` (vigs_msgs/GaussianDelta, reliable): every ``delta_period_s``, the Gaussians added,
   changed and removed since the previous delta, in activated units (scales in m, opacity in [0, 1]).
 * out ``cloud_topic`` (sensor_msgs/PointCloud2, transient-local): every ``cloud_period_s`` when the map changed,
@@ -124,6 +125,7 @@ class MapperNode(VigsNode):
         delta = self.mapper.pop_delta()
         self.status.info["gaussians"] = str(len(self.mapper.map))
         self.status.info["pending_events"] = str(self.mapper.pending())
+        self.status.info["keyframes_deferred"] = str(self.mapper.deferred())
         stats = self.mapper.stats
         self.status.info["keyframes_mapped"] = str(stats.keyframes)
         self.status.info["steps_per_keyframe"] = f"{stats.steps / max(stats.keyframes, 1):.1f}"
@@ -175,7 +177,7 @@ class MapperNode(VigsNode):
         if self.mapper is None:
             return
         self.mapper.stop()
-        queued = self.mapper.pending()
+        queued = self.mapper.pending() + self.mapper.deferred()
         left = self.mapper.drain(float(self.p["shutdown_drain_s"]))
         if queued:
             print(f"[mapper] at shutdown {queued - left} queued mapping events applied (keyframes inserted without "

@@ -7,6 +7,11 @@ T0 -> T1 with scale s1 and then T1 -> T2 with s2 is the move T0 -> T2 with scale
 the product of the scale corrections stand for all of them. A correction of a keyframe still queued is applied to
 it in place (it is inserted at its newest pose, its depth rescaled), so what is pending is bounded by the
 keyframes queued plus one correction batch.
+
+A live mapper that cannot keep up must not fall further and further behind the robot: with a ``capacity``, the
+queue keeps the newest keyframes and moves the oldest aside ("deferred"); they are handed out only when nothing
+else waits (the robot idle, or the shutdown drain), newest first. Deferred keyframes cost the memory a mapped
+keyframe costs (the mapper keeps every keyframe's image and depth), and are counted.
 """
 from __future__ import annotations
 
@@ -21,12 +26,20 @@ class MapperInbox:
     """Thread-safe inbox of a :class:`vigs_core.mapping.GaussianMapper` (module docstring).
 
     :meth:`take` hands out the pending pose corrections first (one ``("poses", poses, scales)`` batch), then the
-    oldest queued keyframe (``("keyframe", kf)``); :meth:`done` marks the taken event applied.
+    oldest queued keyframe, then the newest deferred one (``("keyframe", kf)``); :meth:`done` marks the taken
+    event applied.
+
+    Args:
+        capacity: keyframes queued at most (older ones are deferred); 0: no limit, nothing is deferred.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, capacity: int = 0) -> None:
+        if capacity < 0:
+            raise ValueError(f"capacity must be >= 0, got {capacity}")
+        self.capacity = capacity
         self._cond = threading.Condition()
         self._keyframes: deque[Any] = deque()
+        self._deferred: list[Any] = []
         self._poses: dict[int, torch.Tensor] = {}
         self._scales: dict[int, float] = {}
         self._busy = 0
@@ -35,15 +48,17 @@ class MapperInbox:
         """Queue a keyframe (an object with ``id``, ``T_WC`` (4, 4) and ``depth``)."""
         with self._cond:
             self._keyframes.append(kf)
+            while self.capacity and len(self._keyframes) > self.capacity:
+                self._deferred.append(self._keyframes.popleft())
             self._cond.notify_all()
 
     def put_poses(self, poses: dict[int, torch.Tensor], scales: dict[int, float]) -> None:
         """Fold corrected poses ``{kf_id: T_WC}`` and scale corrections ``{kf_id: s}`` into what is pending."""
         with self._cond:
-            queued = {kf.id: kf for kf in self._keyframes}
+            waiting = {kf.id: kf for kf in (*self._keyframes, *self._deferred)}
             for k, T in poses.items():
                 s = float(scales.get(k, 1.0))
-                kf = queued.get(k)
+                kf = waiting.get(k)
                 if kf is not None:           # not inserted yet: insert it where it is now
                     kf.T_WC = T
                     if s != 1.0:
@@ -64,7 +79,9 @@ class MapperInbox:
                 event = ("poses", self._poses, self._scales)
                 self._poses, self._scales = {}, {}
                 return event
-            return ("keyframe", self._keyframes.popleft())
+            if self._keyframes:
+                return ("keyframe", self._keyframes.popleft())
+            return ("keyframe", self._deferred.pop())
 
     def done(self) -> None:
         """The event from :meth:`take` is applied."""
@@ -73,19 +90,24 @@ class MapperInbox:
             self._cond.notify_all()
 
     def wait_empty(self) -> None:
-        """Block until nothing is pending and no taken event is being applied."""
+        """Block until nothing is pending or deferred and no taken event is being applied."""
         with self._cond:
             self._cond.wait_for(lambda: not self._ready() and self._busy == 0)
 
-    def keyframes_waiting(self) -> int:
-        """Keyframes queued (not yet taken)."""
+    def full(self) -> bool:
+        """The queue is at its capacity: the next keyframe will defer one (never with no capacity)."""
         with self._cond:
-            return len(self._keyframes)
+            return bool(self.capacity) and len(self._keyframes) >= self.capacity
+
+    def deferred(self) -> int:
+        """Keyframes moved aside, not yet handed out."""
+        with self._cond:
+            return len(self._deferred)
 
     def __len__(self) -> int:
-        """Events pending: the queued keyframes plus one for a pending correction batch."""
+        """Events pending, deferred keyframes aside: the queued keyframes plus one for a correction batch."""
         with self._cond:
             return len(self._keyframes) + (1 if self._poses else 0)
 
     def _ready(self) -> bool:
-        return bool(self._poses) or bool(self._keyframes)
+        return bool(self._poses) or bool(self._keyframes) or bool(self._deferred)

@@ -82,10 +82,11 @@ class MapperConfig:
         seed: seed of the keyframe sampler.
         retain_heap: keep freed heap memory in the process (see :func:`retain_freed_heap`; glibc only,
             process-wide) instead of returning it to the kernel after every step.
-        max_backlog: when more than this many keyframes wait, the keyframe being inserted gets no further
-            optimisation steps (its Gaussians are in the map; the next keyframe's steps and idle steps refine
-            them), so a live mapper that cannot keep up stays about this far behind; 0: every keyframe gets its
-            ``iterations`` however long the queue (offline runs).
+        max_backlog: keyframes queued at most (:class:`vigs_core.mapping.inbox.MapperInbox`): older ones are
+            deferred, mapped when nothing else waits (idle, or the shutdown drain); while the queue is full the
+            keyframe being inserted gets no further optimisation steps. A live mapper that cannot keep up stays
+            this far behind the newest keyframe. 0: every keyframe in order with its ``iterations`` however
+            long the queue (offline runs).
         refine_when_idle: the worker thread (:meth:`GaussianMapper.run_async`), when nothing is queued, keeps
             optimising, one step at a time on a keyframe drawn uniformly from the mapped ones, so CPU left
             over improves the map (a live mapper at low priority); off: it waits.
@@ -267,7 +268,7 @@ class GaussianMapper:
         self._next_id = 0
         self._rng = random.Random(c.seed)
         self._lock = threading.RLock()
-        self._inbox = MapperInbox()
+        self._inbox = MapperInbox(self.config.max_backlog)
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
         self._new = torch.zeros(0, dtype=torch.bool, device=self.device)
@@ -295,8 +296,13 @@ class GaussianMapper:
         self._inbox.put_poses(poses, {int(k): float(s) for k, s in (scales or {}).items()})
 
     def pending(self) -> int:
-        """Number of events not yet applied: queued keyframes, plus one for pending pose corrections."""
+        """Number of events not yet applied: queued keyframes, plus one for pending pose corrections (deferred
+        keyframes aside: :meth:`deferred`)."""
         return len(self._inbox)
+
+    def deferred(self) -> int:
+        """Keyframes set aside while the mapper was behind (``max_backlog``), not yet mapped."""
+        return self._inbox.deferred()
 
     def step(self) -> bool:
         """Apply the next pending event (synchronous use); False when there was none."""
@@ -317,10 +323,10 @@ class GaussianMapper:
         return count
 
     def drain(self, seconds: float) -> int:
-        """At shutdown (worker stopped): apply the queued events within ``seconds``, each queued keyframe inserted
-        from its depth without optimisation steps (one render for the densification mask instead of
-        ``iterations`` steps), so the saved map holds every keyframe received, unrefined where there was no
-        time to refine it. Returns how many events are left."""
+        """At shutdown (worker stopped): apply the queued events within ``seconds``, each queued or deferred
+        keyframe inserted from its depth without optimisation steps (one render for the densification mask
+        instead of ``iterations`` steps), so the saved map holds every keyframe received, unrefined where there
+        was no time to refine it. Returns how many events (deferred keyframes included) are left."""
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             event = self._inbox.take()
@@ -333,7 +339,7 @@ class GaussianMapper:
                     self._apply(event)
             finally:
                 self._inbox.done()
-        return self.pending()
+        return self.pending() + self.deferred()
 
     def run_async(self) -> None:
         """Start a worker thread that applies queued events as they arrive (idempotent)."""
@@ -502,7 +508,7 @@ class GaussianMapper:
             self._append(new)
         steps = 0
         for kf_step in self._schedule(kf.id) if optimise else ():
-            if c.max_backlog and self._inbox.keyframes_waiting() > c.max_backlog:
+            if self._inbox.full():
                 break
             with self._lock:
                 self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
@@ -515,12 +521,15 @@ class GaussianMapper:
         self.stats.mapping_seconds += time.perf_counter() - t0
 
     def _schedule(self, new_id: int) -> list[int]:
-        """Keyframe ids for the ``iterations`` steps: the new keyframe first, then the rest of the local
-        window and ``global_keyframes`` random older ones, shuffled, cycled to length ``iterations``."""
+        """Keyframe ids for the ``iterations`` steps: the new keyframe first, then the rest of its local
+        window (the ``window`` keyframes up to it: the most recent ones, unless it was deferred) and
+        ``global_keyframes`` random others, shuffled, cycled to length ``iterations``."""
         c = self.config
         ids = sorted(self.keyframes)
-        window = [k for k in ids[-c.window :] if k != new_id]
-        older = ids[: max(0, len(ids) - c.window)]
+        end = ids.index(new_id) + 1
+        start = max(0, end - c.window)
+        window = ids[start : end - 1]
+        older = ids[:start] + ids[end:]
         extra = self._rng.sample(older, min(c.global_keyframes, len(older)))
         rest = window + extra
         self._rng.shuffle(rest)
