@@ -132,6 +132,10 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
         R_gt = gt_body[p.start_ns][:3, :3].T @ gt_body[p.end_ns][:3, :3]
         assert rotation_angle(p.delta_R.T @ R_gt) < 1e-3
     assert len(rec.msgs["/vigs/imu_odometry"]) > 0
+    # ... measured inside the node from the samples' DDS reception (the same clock): small and never negative
+    lat = np.array(nodes[0].odometry_latency_ms)
+    assert len(lat) > 0 and lat.min() >= 0.0 and np.median(lat) < 1000.0
+    assert nodes[0].status.info["odometry_latency_ms"].startswith("p50 ")
     # mapper: Gaussians from the keyframes' depth, map saved at close
     delta = msg_to_gaussian_delta(rec.msgs["/vigs/gaussian_deltas"][0])
     assert len(delta.added_ids) > 0 and delta.version == 1

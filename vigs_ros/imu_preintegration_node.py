@@ -104,7 +104,8 @@ class ImuPreintegrationNode(VigsNode):
         self.pub_pre = self.create_publisher(PreintegratedImu, self.p["preintegrated_topic"], reliable_qos(100))
         self.pub_odom = self.create_publisher(Odometry, self.p["odometry_topic"], reliable_qos(50))
         self.lock = threading.Lock()   # on_imu runs on the IMU subscription's own thread
-        self.create_threaded_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+        self.imu_sub = self.create_threaded_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
+        self.odometry_latency_ms: deque[float] = deque(maxlen=2000)   # IMU reception -> odometry publish
         self.create_subscription(NavState, self.p["keyframe_event_topic"], self.on_keyframe_event, reliable_qos(100))
         self.create_subscription(NavState, self.p["state_topic"], self.on_state, latched_qos(1))
         self.create_timer(0.5, self.expire_events)
@@ -122,7 +123,16 @@ class ImuPreintegrationNode(VigsNode):
             self._since_odom += accepted
             if self.p["publish_odometry"] and self._since_odom >= int(self.p["odometry_every_n"]):
                 self._since_odom = 0
-                self.publish_odometry(self.buffer.latest_ns)
+                if self.publish_odometry(self.buffer.latest_ns):
+                    self.record_latency()
+
+    def record_latency(self) -> None:
+        """Latency inside the node: DDS reception of the newest IMU sample to its odometry published (the rest of
+        what a subscriber sees is transport and its own scheduling); p50 / p95 in the status every 200 samples."""
+        self.odometry_latency_ms.append((time.time_ns() - self.imu_sub.received_ns) * 1e-6)
+        if len(self.odometry_latency_ms) % 200 == 0 or len(self.odometry_latency_ms) == 1:
+            p50, p95 = np.percentile(self.odometry_latency_ms, (50, 95))
+            self.status.info["odometry_latency_ms"] = f"p50 {p50:.2f}, p95 {p95:.2f} (reception to publish)"
 
     def add_imu(self, msg: Imu) -> bool:
         """Buffer one sample; False when it was malformed, dropped (out of order) or held (far ahead)."""
@@ -204,14 +214,14 @@ class ImuPreintegrationNode(VigsNode):
                 self.status.clear_error("no_imu")
 
     # ------------------------------------------------------------------ odometry
-    def publish_odometry(self, t_ns: int, publish: bool = True) -> None:
+    def publish_odometry(self, t_ns: int, publish: bool = True) -> bool:
         """Propagate the state to ``t_ns`` through the buffered IMU and publish odometry at every sample (NumPy
-        state and unchecked batch messages: this runs for every IMU sample)."""
+        state and unchecked batch messages: this runs for every IMU sample); True when messages went out."""
         state = self.state
         if state is None or t_ns <= state.t_ns:
-            return
+            return False
         if not (self.state_initialized or self.p["odometry_before_init"]):
-            return
+            return False
         samples = self.buffer.samples(state.t_ns, t_ns)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # stream defects were reported on arrival
@@ -220,7 +230,7 @@ class ImuPreintegrationNode(VigsNode):
                                       rate_hz=self.p["rate_hz"])
             except ValueError as exc:
                 self.status.warn("propagation", f"cannot propagate the state from {state.t_ns} ns: {exc}")
-                return
+                return False
         if publish:
             T = np.tile(np.eye(4), (len(path.t_ns) - 1, 1, 1))
             T[:, :3, :3], T[:, :3, 3] = path.R[1:], path.p[1:]
@@ -231,6 +241,7 @@ class ImuPreintegrationNode(VigsNode):
             self.status.count("odometry_out", len(T))
         self.state = ImuState(int(path.t_ns[-1]), path.R[-1], path.p[-1], path.v[-1], state.bias_gyro,
                               state.bias_acc)
+        return publish
 
 
 def to_message_data(pre: Preintegrated, from_id: int, to_id: int, num_samples: int, frame_id: str

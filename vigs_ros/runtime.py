@@ -93,13 +93,15 @@ class ThreadedSubscription:
     handlers) and takes one message per round, at several times the CPU per message of one subscription in a
     wait set of its own (docs/benchmarks.md, live operation, tenth session); the IMU, at 200 Hz the graph's most
     frequent message, is taken by two processes. The callback runs on this thread, so it must
-    only share state with the node's other callbacks under a lock. An exception in it is printed and shuts the
-    context down (the node's process exits non-zero)."""
+    only share state with the node's other callbacks under a lock; ``received_ns`` is the DDS reception time
+    (system clock, ns) of the newest message of the list it is called with, for latency measured inside the
+    node. An exception in it is printed and shuts the context down (the node's process exits non-zero)."""
 
     def __init__(self, node: Node, msg_type, topic: str, callback: Callable[[list], None], qos_profile,
                  poll_s: float = 0.1) -> None:
         self.topic = topic
         self.error: BaseException | None = None
+        self.received_ns = 0
         self._callback = callback
         self._context = node.context
         self._poll_ns = int(poll_s * 1e9)
@@ -119,9 +121,10 @@ class ThreadedSubscription:
                     wait_set.clear_entities()
                     wait_set.add_subscription(self.subscription.handle)
                     wait_set.wait(self._poll_ns)
-                messages = list(take_queued(self.subscription))
-                if messages and not self._stopping.is_set():
-                    self._callback(messages)
+                taken = list(take_queued(self.subscription))
+                if taken and not self._stopping.is_set():
+                    self.received_ns = max(int(info["received_timestamp"]) for _, info in taken)
+                    self._callback([msg for msg, _ in taken])
         except InvalidHandle:   # the node or the context was destroyed under us: shutting down
             pass
         except Exception as exc:  # noqa: BLE001 - reported, then the process shuts down
@@ -138,8 +141,8 @@ class ThreadedSubscription:
 
 
 def take_queued(subscription) -> Iterator:
-    """The messages already waiting for ``subscription``, taken now (a :class:`ThreadedSubscription` hands them to
-    its callback in one list, so a node that fell behind catches up in one call)."""
+    """The ``(message, info)`` pairs already waiting for ``subscription``, taken now (a :class:`ThreadedSubscription`
+    hands the messages to its callback in one list, so a node that fell behind catches up in one call)."""
     while True:
         try:
             with subscription.handle:
@@ -148,7 +151,7 @@ def take_queued(subscription) -> Iterator:
             return
         if taken is None:
             return
-        yield taken[0]
+        yield taken
 
 
 def process_nice(default: int) -> ParamSpec:
