@@ -119,7 +119,7 @@ NODE_NAME = "frontend"
 IDENTITY_16 = [float(v) for v in np.eye(4).reshape(-1)]
 
 PARAMS = [
-    process_nice(0),
+    process_nice(-5),
     ParamSpec("image_topic", "/image", "input image topic (Image, or CompressedImage with image_transport=compressed)"),
     ParamSpec("image_transport", "raw", "raw (sensor_msgs/Image) or compressed (sensor_msgs/CompressedImage)"),
     ParamSpec("camera_info_topic", "/camera_info", "input sensor_msgs/CameraInfo topic"),

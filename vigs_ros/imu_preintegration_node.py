@@ -50,7 +50,7 @@ from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 NODE_NAME = "imu_preintegration"
 
 PARAMS = [
-    process_nice(0),
+    process_nice(-10),
     ParamSpec("imu_topic", "/imu", "input sensor_msgs/Imu topic (sensor-data QoS)"),
     ParamSpec("keyframe_event_topic", "/vigs/keyframe_events", "input vigs_msgs/NavState: new keyframes"),
     ParamSpec("state_topic", "/vigs/state", "input vigs_msgs/NavState: latest optimised state"),

@@ -161,10 +161,10 @@ def process_nice(default: int) -> ParamSpec:
                                                    "(needs root or CAP_SYS_NICE) takes it first")
 
 
-def renice(increment: int) -> bool:
-    """Add ``increment`` to the niceness of every thread of this process (clamped to -20..19) and, when the process
-    leads its own session, of its scheduling autogroup; False when the system refused (a negative increment
-    without the privilege).
+def renice(increment: int, threads: bool = True) -> bool:
+    """Add ``increment`` to the niceness of every thread of this process (clamped to -20..19; not with ``threads``
+    False: child processes would inherit it) and, when the process leads its own session, of its scheduling
+    autogroup; False when the system refused (a negative increment without the privilege).
 
     Linux keeps a niceness per thread and ``os.nice`` changes only the caller's: a node's worker thread (the
     mapper's optimisation) and the DDS threads, started before, would keep the old priority. With autogroup
@@ -172,7 +172,7 @@ def renice(increment: int) -> bool:
     first between sessions, and a thread's niceness only weighs within its session: the launcher starts every
     node in a session of its own, so a node yields to tracking only through its autogroup's niceness."""
     done = True
-    for tid in os.listdir("/proc/self/task"):
+    for tid in os.listdir("/proc/self/task") if threads else ():
         try:
             now = os.getpriority(os.PRIO_PROCESS, int(tid))
             os.setpriority(os.PRIO_PROCESS, int(tid), max(-20, min(19, now + int(increment))))
