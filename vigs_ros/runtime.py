@@ -98,8 +98,11 @@ class ThreadedSubscription:
     node. An exception in it is printed and shuts the context down (the node's process exits non-zero)."""
 
     def __init__(self, node: Node, msg_type, topic: str, callback: Callable[[list], None], qos_profile,
-                 poll_s: float = 0.1) -> None:
+                 poll_s: float = 0.1, raw: bool = False, with_info: bool = False) -> None:
+        """``raw``: the callback gets serialized messages (bytes); ``with_info``: it gets ``(message, info)``
+        pairs (info: rclpy's message info, with the reception stamp)."""
         self.topic = topic
+        self._with_info = with_info
         self.error: BaseException | None = None
         self.received_ns = 0
         self._callback = callback
@@ -107,7 +110,7 @@ class ThreadedSubscription:
         self._poll_ns = int(poll_s * 1e9)
         self._stopping = threading.Event()
         self.subscription = node.create_subscription(msg_type, topic, lambda msg: None, qos_profile,
-                                                     callback_group=_ServedElsewhere())
+                                                     callback_group=_ServedElsewhere(), raw=raw)
         self._thread = threading.Thread(target=self._run, name=f"sub{topic}", daemon=True)
         self._thread.start()
 
@@ -124,7 +127,7 @@ class ThreadedSubscription:
                 taken = list(take_queued(self.subscription))
                 if taken and not self._stopping.is_set():
                     self.received_ns = max(int(info["received_timestamp"]) for _, info in taken)
-                    self._callback([msg for msg, _ in taken])
+                    self._callback(taken if self._with_info else [msg for msg, _ in taken])
         except InvalidHandle:   # the node or the context was destroyed under us: shutting down
             pass
         except Exception as exc:  # noqa: BLE001 - reported, then the process shuts down
