@@ -24,9 +24,10 @@ The mapper is fed through an inbox (:mod:`vigs_core.mapping.inbox`): :meth:`Gaus
 :meth:`GaussianMapper.update_keyframe_poses` only enqueue, so tracking never waits for mapping; pose corrections
 are folded into one batch, applied before the next keyframe; keyframes are inserted in order by
 :meth:`GaussianMapper.step` (synchronous use) or by the worker thread of :meth:`GaussianMapper.run_async`. A live
-mapper that falls behind inserts the oldest queued keyframes without refinement (``max_backlog``), and with
-``refine_when_idle`` spends the time when nothing is queued on further optimisation steps. Rendering and saving
-take the map lock between optimisation steps.
+mapper that falls behind (``max_backlog``) keeps up with the newest keyframes: older ones are deferred to when
+nothing else waits, and a keyframe's steps stop while the queue is full; with ``refine_when_idle`` it spends the
+time when nothing waits on further optimisation steps. Rendering and saving take the map lock between
+optimisation steps.
 """
 from __future__ import annotations
 
