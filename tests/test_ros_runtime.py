@@ -64,3 +64,24 @@ def test_a_failing_threaded_callback_shuts_the_context_down_and_is_reported(ros_
         time.sleep(0.02)
     assert not ros_context.ok()
     assert node.failed_threads == ["/imu_fail"]
+
+
+def test_an_error_during_a_signal_shutdown_is_told_from_a_real_one():
+    """rclpy's signal handler shuts the context down from a thread of its own: an error raised meanwhile (while
+    ``ok()`` still holds) is part of the shutdown; one with the context still up after the wait is real."""
+    import threading
+
+    import rclpy
+    from rclpy.context import Context
+
+    from vigs_ros.runtime import shutting_down
+
+    for stays_up in (False, True):
+        context = Context()
+        rclpy.init(context=context, domain_id=0)
+        try:
+            if not stays_up:
+                threading.Timer(0.2, context.try_shutdown).start()
+            assert shutting_down(context, wait_s=1.0) is not stays_up
+        finally:
+            context.try_shutdown()

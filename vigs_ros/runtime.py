@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 
@@ -131,7 +132,7 @@ class ThreadedSubscription:
         except InvalidHandle:   # the node or the context was destroyed under us: shutting down
             pass
         except Exception as exc:  # noqa: BLE001 - reported, then the process shuts down
-            if self._context.ok():
+            if not shutting_down(self._context):
                 traceback.print_exc()
                 self.error = exc
                 self._context.try_shutdown()
@@ -141,6 +142,17 @@ class ThreadedSubscription:
         self._stopping.set()
         if self._thread is not threading.current_thread():
             self._thread.join(5.0)
+
+
+def shutting_down(context, wait_s: float = 2.0) -> bool:
+    """Whether ``context`` is being shut down, waiting up to ``wait_s`` for it: rclpy's signal handler shuts the
+    contexts down from a thread of its own, so a take that fails because of the signal (RCLError, or a
+    RuntimeError from the message's conversion) can come while ``context.ok()`` still holds for a moment. An
+    error with the context still up after ``wait_s`` is a real one."""
+    deadline = time.monotonic() + wait_s
+    while context.ok() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return not context.ok()
 
 
 def take_queued(subscription) -> Iterator:
@@ -249,11 +261,11 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:  # a node's callback or constructor failed: report it and exit non-zero
-        if context.ok():
+        if not shutting_down(context):
             traceback.print_exc()
             code = 1
         # else a signal shut the context down while the executor was taking a message (rclpy then raises
-        # RCLError / RuntimeError from the wait set): an ordinary shutdown
+        # RCLError / RuntimeError from the wait set or the take): an ordinary shutdown
     finally:
         failed = [topic for node in nodes if isinstance(node, VigsNode) for topic in node.failed_threads]
         if failed:
