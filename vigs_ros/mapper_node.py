@@ -56,7 +56,7 @@ PARAMS = [
     ParamSpec("map_frame", "map", "frame of the Gaussian means"),
     ParamSpec("map_path", "out/ros/map.ply", "where ~/save_map and shutdown write the map (PLY + .json sidecar)"),
     ParamSpec("save_on_shutdown", True, "save the map to map_path at shutdown"),
-    ParamSpec("shutdown_drain_s", 10.0, "at shutdown, apply queued keyframes / pose updates for at most this long "
+    ParamSpec("shutdown_drain_s", 20.0, "at shutdown, apply queued keyframes / pose updates for at most this long "
                                         "(s; keep it below the launcher's 30 s shutdown timeout)"),
     ParamSpec("delta_period_s", 1.0, "period of Gaussian delta publication (s)"),
     ParamSpec("cloud_topic", "/vigs/map_cloud", "output sensor_msgs/PointCloud2 of the Gaussian means (RGB)"),
