@@ -281,3 +281,24 @@ def test_a_mapper_behind_keeps_up_with_the_newest_keyframes_and_maps_the_rest_wh
         idle.stop()
     assert idle.stats.idle_steps >= 20 and idle.stats.keyframes == 1
     assert psnr(idle.render(T).color, image) > before + 0.5
+
+
+def test_readers_get_the_map_while_the_mapper_refines_when_idle():
+    """Idle steps run back to back: a reader of the map (render, snapshot, the node's deltas and clouds, its save
+    at shutdown) must still get the map lock between them, not wait for the worker to stop."""
+    mapper = _mapper(iterations=1, refine_when_idle=True)
+    _feed(mapper, [0.0, 0.4])
+    mapper.process_pending()
+    mapper.run_async()
+    waits = []
+    try:
+        while mapper.stats.idle_steps < 3:
+            time.sleep(0.01)
+        for _ in range(10):
+            t0 = time.monotonic()
+            mapper.snapshot()
+            waits.append(time.monotonic() - t0)
+            time.sleep(0.01)
+    finally:
+        mapper.stop()
+    assert max(waits) < 1.0, waits

@@ -129,6 +129,9 @@ class MapperConfig:
             raise ValueError(f"render_scale must be in (0, 1], got {self.render_scale}")
 
 
+_IDLE_PAUSE_S = 0.01   # between idle steps (GaussianMapper._work)
+
+
 @dataclass
 class Keyframe:
     """A keyframe as the mapper keeps it: pose (4, 4) float64, ``image_u8`` (h, w, 3) uint8 and ``depth``
@@ -432,6 +435,9 @@ class GaussianMapper:
             if event is None:
                 if idle and self.keyframes:
                     self._idle_step()
+                    # a pause with the map lock free: a thread waiting for it (a render, the node's deltas, a save)
+                    # would otherwise rarely win it between back-to-back steps
+                    self._stop.wait(_IDLE_PAUSE_S)
                 continue
             try:
                 self._apply(event)
