@@ -265,8 +265,8 @@ def summarize(r: dict, gt) -> dict:
             ate = float(evaluate_trajectory(gt, read_tum(traj), align="se3", max_diff_s=1e-3)["ate_rmse"])
         except ValueError:
             pass
-    mapper = next((v for k, v in probe.status.items() if k.endswith("mapper")), {})
-    imu_node = next((v for k, v in probe.status.items() if k.endswith("imu_preintegration")), {})
+    mapper, imu_node = (next((v for k, v in probe.status.items() if k.endswith(node)), {})
+                        for node in ("mapper", "imu_preintegration"))
     pct = lambda x, q: float(np.percentile(x, q)) if len(x) else float("nan")  # noqa: E731
     lat, ilat = probe.latency_ms("odom", "image"), probe.latency_ms("imu_odom", "imu")
     return {

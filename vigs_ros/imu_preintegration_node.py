@@ -106,6 +106,7 @@ class ImuPreintegrationNode(VigsNode):
         self.lock = threading.Lock()   # on_imu runs on the IMU subscription's own thread
         self.imu_sub = self.create_threaded_subscription(Imu, self.p["imu_topic"], self.on_imu, sensor_qos(200))
         self.odometry_latency_ms: deque[float] = deque(maxlen=2000)   # IMU reception -> odometry publish
+        self._latencies_recorded = 0
         self.create_subscription(NavState, self.p["keyframe_event_topic"], self.on_keyframe_event, reliable_qos(100))
         self.create_subscription(NavState, self.p["state_topic"], self.on_state, latched_qos(1))
         self.create_timer(0.5, self.expire_events)
@@ -130,7 +131,8 @@ class ImuPreintegrationNode(VigsNode):
         """Latency inside the node: DDS reception of the newest IMU sample to its odometry published (the rest of
         what a subscriber sees is transport and its own scheduling); p50 / p95 in the status every 200 samples."""
         self.odometry_latency_ms.append((time.time_ns() - self.imu_sub.received_ns) * 1e-6)
-        if len(self.odometry_latency_ms) % 200 == 0 or len(self.odometry_latency_ms) == 1:
+        self._latencies_recorded += 1
+        if self._latencies_recorded % 200 == 1:   # not len(): the deque stops growing at its maxlen
             p50, p95 = np.percentile(self.odometry_latency_ms, (50, 95))
             self.status.info["odometry_latency_ms"] = f"p50 {p50:.2f}, p95 {p95:.2f} (reception to publish)"
 

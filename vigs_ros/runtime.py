@@ -176,6 +176,9 @@ def process_nice(default: int) -> ParamSpec:
                                                    "(needs root or CAP_SYS_NICE) takes it first")
 
 
+_AUTOGROUP = "/proc/self/autogroup"
+
+
 def renice(increment: int, threads: bool = True) -> bool:
     """Add ``increment`` to the niceness of every thread of this process (clamped to -20..19; not with ``threads``
     False: child processes would inherit it) and, when the process leads its own session, of its scheduling
@@ -203,9 +206,6 @@ def renice(increment: int, threads: bool = True) -> bool:
         except OSError:
             done = False
     return done
-
-
-_AUTOGROUP = "/proc/self/autogroup"
 
 
 def autogroup_nice() -> int | None:
