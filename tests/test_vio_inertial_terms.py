@@ -209,3 +209,21 @@ def test_held_depth_keeps_the_window_scale_when_one_interval_contradicts_the_imu
                          extra_state=state0, fixed_disparity=fixed)
     assert abs(scale(free) - 1.0) > 0.05                              # measured 8.6%
     assert abs(scale(held) - 1.0) < 0.3 * abs(scale(free) - 1.0)      # measured 2.2%
+
+
+def test_an_interval_of_weight_zero_contributes_nothing():
+    """An interval across an IMU gap (``interval_weight`` 0): whatever its preintegration holds, the normal
+    equations are those of the other intervals alone (here: interval 1 of 3 corrupted by 1 m and 1 rad)."""
+    sc = make_scenario(n=4)
+    pre = preintegrate_between(sc.imu, sc.stamps_ns, NOISE)
+    v, b, _, _ = _random_state(4, True, seed=2)
+    state = InertialState(v, b, torch.eye(3, **F64), torch.zeros((), **F64))
+    poses = se3_inverse(sc.T_wc)
+    weight = torch.tensor([1.0, 0.0, 1.0], **F64)
+    H, g, cost = InertialTerms(pre, T_CB, interval_weight=weight).linearize(poses, state)
+    pre.delta_p[1] += 1.0
+    pre.delta_R[1] = so3_exp(torch.tensor([1.0, 0.0, 0.0], **F64)) @ pre.delta_R[1]
+    H2, g2, cost2 = InertialTerms(pre, T_CB, interval_weight=weight).linearize(poses, state)
+    assert torch.allclose(H, H2) and torch.allclose(g, g2) and math.isclose(float(cost), float(cost2))
+    H3, _, cost3 = InertialTerms(pre, T_CB).linearize(poses, state)   # with its weight, the corruption counts
+    assert float(cost3) > 10 * float(cost) and not torch.allclose(H, H3)

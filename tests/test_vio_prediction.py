@@ -138,3 +138,26 @@ def test_a_predicted_frame_that_becomes_a_keyframe_hands_on_its_preintegration()
     est.add_keyframe(2, int(sc.stamps_ns[2]), sc.velocities[2])
     assert (1, 2) not in est._pre
 
+
+
+def test_a_window_across_an_imu_gap_keeps_the_factors_of_its_covered_intervals():
+    """IMU samples missing over keyframe 2 (intervals (1, 2) and (2, 3) hold a gap over ``max_imu_gap_s``): once
+    metric, the window's inertial terms keep intervals (0, 1), (3, 4), (4, 5) at full weight, give the two
+    across the gap weight 0, and anchor the velocity of keyframe 2, which no interval observes; before the map
+    is metric the window is vision-only (no terms)."""
+    sc = _scenario()
+    t = sc.imu.t_ns
+    keep = np.abs(t - sc.stamps_ns[2]) > 2 * 10**8   # 0.4 s without samples around keyframe 2
+    imu = ImuSamples(t[keep], sc.imu.gyro[keep], sc.imu.acc[keep])
+    est = VisualInertialEstimator(VioConfig(), imu, NOISE, T_BC)
+    for k in range(6):
+        est.add_keyframe(k, int(sc.stamps_ns[k]), sc.velocities[k])
+    ids, poses = list(range(6)), se3_inverse(sc.T_wc)
+    est.initializer.stage = Stage.JOINT_UNALIGNED
+    assert est.terms(ids, poses, {0}) is None
+    est.initializer.stage = Stage.VISUAL_INERTIAL
+    terms, _ = est.terms(ids, poses, {0})
+    full = VioConfig().inertial_weight * torch.linalg.inv(terms.pre.cov)
+    assert torch.allclose(terms.info[[0, 3, 4]], full[[0, 3, 4]])
+    assert terms.info[[1, 2]].abs().max() == 0
+    assert terms.anchor.mask.tolist() == [True, False, True, False, False, False]

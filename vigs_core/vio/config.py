@@ -58,11 +58,12 @@ class VioConfig:
             (:class:`~vigs_core.imu.inertial_init.InertialInitConfig` ``bias_random_walk``) instead of one
             bias for its window.
         scheme: preintegration scheme (see :mod:`vigs_core.imu.preintegration`).
-        max_imu_gap_s: the IMU is not integrated across a gap longer than this (s): a frame or a BA window whose
-            interval holds such a gap gets no IMU prediction and no inertial terms (tracked vision-only against
-            the metric map, whose scale the held fixed-keyframe depth carries), a keyframe after it takes its
-            velocity from the keyframe positions, and the inertial terms resume once the window has passed the
-            gap. Integrating across it (the linear signal model) sent a 2 s gap's trajectory kilometres away.
+        max_imu_gap_s: the IMU is not integrated across a gap longer than this (s): a frame whose interval holds
+            such a gap gets no IMU prediction (tracked vision-only against the metric map), a keyframe interval
+            across it no inertial factor (the window's other intervals keep theirs; the window holds its fixed
+            keyframe's depth at once, as the scale's only carrier), and a keyframe after it takes its velocity
+            from the keyframe positions. Integrating across it (the linear signal model) sent a 2 s gap's
+            trajectory kilometres away.
         marginalize: once the map is metric, a keyframe leaving the BA window is marginalised into a Gaussian
             prior on the window's remaining poses, velocities and biases (:mod:`vigs_core.vio.marginalization`),
             and BA holds no keyframe fixed (the prior carries the gauge and the window's scale and velocity

@@ -209,31 +209,42 @@ class VisualInertialEstimator:
               anchored: set[int] | None = None) -> tuple[InertialTerms, InertialState] | None:
         """Inertial terms and state of a BA window of consecutive keyframes ``ids`` (oldest first), or None
         when no inertial terms apply (vision-only stage, fusion off, fewer than two keyframes, no IMU data over
-        the window, or an IMU gap over ``max_imu_gap_s`` in it: the window is then vision-only). Once metric,
-        the window gets the marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes
-        in ``anchored`` (the window's fixed ones) keep their velocity and bias through an :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
+        the window). An interval with an IMU gap over ``max_imu_gap_s`` gets no inertial factor (weight 0): once
+        metric the rest of the window keeps its factors, and a keyframe left without any keeps its velocity and
+        bias through the anchor; before that the whole window is vision-only. Once metric, the window gets the
+        marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the
+        window's fixed ones) keep their velocity and bias through an
+        :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
             return None
-        if not self.imu_covers(self.states[ids[0]].t_ns, self.states[ids[-1]].t_ns):
+        covered = [self.imu_covers(self.states[i].t_ns, self.states[j].t_ns) for i, j in zip(ids[:-1], ids[1:])]
+        if not all(covered) and not (self.metric and any(covered)):
             return None
         joint = self.stage == Stage.JOINT_UNALIGNED
-        pre = self.preintegrations(list(zip(ids[:-1], ids[1:])))
+        pairs = list(zip(ids[:-1], ids[1:]))
+        stand_in = pairs[covered.index(True)]   # an interval across a gap is not integrated: weight 0, any stand-in
+        pre = self.preintegrations([p if ok else stand_in for p, ok in zip(pairs, covered)])
         prior = _bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std)
         vel = torch.stack([self.states[k].velocity for k in ids])
         biases = torch.stack([self.states[k].bias for k in ids]) if c.per_keyframe_bias else self.global_bias[None]
+        # keyframes without an inertial interval (inside an IMU gap): nothing but the anchor holds their velocity
+        isolated = [not ((n > 0 and covered[n - 1]) or (n < len(covered) and covered[n])) for n in range(len(ids))]
         anchor, marginal, index = None, None, None
         if self.prior_holds_gauge(ids):
             marginal, index = self.marginal, [ids.index(k) for k in self.marginal.ids]
-        elif self.metric and anchored and c.anchor_velocity_std > 0:
-            mask = torch.tensor([k in anchored for k in ids])
+        elif self.metric and (anchored or any(isolated)) and c.anchor_velocity_std > 0:
+            mask = torch.tensor([k in (anchored or ()) or isolated[n] for n, k in enumerate(ids)])
             all_biases = torch.stack([self.bias_of(k) for k in ids])
             anchor = AnchorPrior(mask, vel.clone(), all_biases, c.anchor_velocity_std,
                                  _bias_stds(c.anchor_bias_gyro_std, c.anchor_bias_acc_std))
+        elif any(isolated):
+            return None
         terms = InertialTerms(pre, self.T_cb, estimate_bias=c.estimate_bias, per_keyframe_bias=c.per_keyframe_bias,
                               estimate_gravity=joint, estimate_scale=joint, gravity=c.gravity,
                               weight=c.inertial_weight, bias_prior_std=prior, anchor=anchor, marginal=marginal,
-                              marginal_index=index)
+                              marginal_index=index,
+                              interval_weight=None if all(covered) else torch.tensor(covered, dtype=F64))
         state = InertialState(vel, biases.clone(), self.R_wg.clone(), torch.tensor(self.log_scale, dtype=F64))
         return terms, state
 

@@ -160,6 +160,8 @@ class InertialTerms:
         estimate_scale: the log-scale is a state.
         gravity: |g|, m/s^2.
         weight: multiplies the inertial information matrices.
+        interval_weight: optional (n - 1,) factor per interval on top of ``weight``; 0 drops an interval (an IMU
+            gap inside it: its preintegration is no measurement).
         bias_prior_std: (6,) standard deviations of the zero-mean bias prior (rad/s x3, m/s^2 x3).
         anchor: optional :class:`AnchorPrior` on the velocities (and per-keyframe biases) of anchored keyframes.
         marginal: optional :class:`MarginalPrior`; ``marginal_index`` (K,) the window positions of its keyframes.
@@ -169,7 +171,7 @@ class InertialTerms:
                  per_keyframe_bias: bool = True, estimate_gravity: bool = False, estimate_scale: bool = False,
                  gravity: float = 9.81, weight: float = 1.0, bias_prior_std: torch.Tensor | None = None,
                  anchor: AnchorPrior | None = None, marginal: MarginalPrior | None = None,
-                 marginal_index: list[int] | None = None) -> None:
+                 marginal_index: list[int] | None = None, interval_weight: torch.Tensor | None = None) -> None:
         if pre.delta_R.dim() != 3:
             raise ValueError(f"InertialTerms needs a batched Preintegrated (B, 3, 3), got {tuple(pre.delta_R.shape)}")
         self.pre = pre
@@ -186,6 +188,8 @@ class InertialTerms:
             cov = cov[:, :9, :9]  # no bias-smoothness rows: the bias is shared or constant
         eye = torch.eye(cov.shape[-1], **f)
         self.info = weight * torch.linalg.inv(cov + 1e-18 * eye)
+        if interval_weight is not None:
+            self.info = self.info * torch.as_tensor(interval_weight, **f)[:, None, None]
         prior = torch.tensor([0.1] * 3 + [0.5] * 3, **f) if bias_prior_std is None else bias_prior_std.to(**f)
         self.prior_info = prior ** -2
         self.anchor = anchor

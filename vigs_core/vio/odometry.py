@@ -123,11 +123,14 @@ class VisualInertialOdometry(DenseOdometry):
         stay free (holding them in the vision-only stage tilted the gravity alignment of tests/test_vio_odometry.py's
         room sequence from 1.4 to 2.8 deg). Once metric, from ``metric_hold_delay_s`` after the alignment on, they
         are held with ``metric_hold_fixed_disparity``: the fixed keyframe's depth map carries the window's scale
-        from one window to the next (see that option)."""
+        from one window to the next (see that option). A metric window without inertial terms (an IMU gap in it)
+        holds them at once: nothing else observes its scale."""
         c = self.vio_config
         if not c.enabled:
             return self.config.hold_fixed_disparity
-        newest = self.keyframes[self.graph.keyframes[-1]]
+        oldest, newest = (self.keyframes[k] for k in (self.graph.keyframes[0], self.graph.keyframes[-1]))
+        if self.vio.metric and not self.vio.imu_covers(oldest.t_ns, newest.t_ns):
+            return True
         return c.metric_hold_fixed_disparity and self.vio.hold_delay_passed(newest.t_ns)
 
     def _insert_into_graph(self, kf: Keyframe) -> list[tuple[int, int]]:
