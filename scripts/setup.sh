@@ -11,7 +11,7 @@ VENV="$ROOT/.venv"
 PY=${PYTHON:-python3}
 STAMP="$VENV/.vigs-setup"
 hash=$(cat requirements/*.txt setup.py package.xml scripts/setup.sh scripts/build_interfaces.sh \
-  $(find interfaces -type f | sort) | sha256sum | cut -d' ' -f1)
+  tools/splat_transform/package*.json $(find interfaces -type f | sort) | sha256sum | cut -d' ' -f1)
 
 if [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$hash" ]]; then
   exit 0
@@ -26,6 +26,8 @@ echo "[setup] installing pinned dependencies (torch 2.13.0 CPU via requirements/
 "$VENV/bin/python" -m pip install --quiet -c requirements/constraints.txt \
   -r requirements/runtime.txt -r requirements/test.txt -r requirements/build.txt
 bash scripts/build_interfaces.sh
+echo "[setup] installing PlayCanvas splat-transform from npm (a 3DGS PLY reader the tests load map.ply with)"
+(cd tools/splat_transform && npm ci --no-audit --no-fund --ignore-scripts --loglevel=error)
 echo "[setup] installing the project (editable)"
 "$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e .
 echo "$hash" > "$STAMP"

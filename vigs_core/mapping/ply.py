@@ -1,14 +1,19 @@
 """Gaussian maps as standard 3DGS PLY files plus a JSON sidecar with the keyframes.
 
 The PLY is ``binary_little_endian 1.0`` with one ``vertex`` element per Gaussian and the float32 properties
-of the original 3D Gaussian Splatting exporter (Kerbl et al. 2023), which common splat viewers read:
+of the original 3D Gaussian Splatting exporter (Kerbl et al. 2023) at SH degree 3, which common splat loaders
+and viewers read:
 
-    x y z  nx ny nz  f_dc_0 f_dc_1 f_dc_2  opacity  scale_0 scale_1 scale_2  rot_0 rot_1 rot_2 rot_3
+    x y z  nx ny nz  f_dc_0 f_dc_1 f_dc_2  f_rest_0 .. f_rest_44  opacity  scale_0 scale_1 scale_2
+    rot_0 rot_1 rot_2 rot_3
 
-with ``opacity`` the logit, ``scale_*`` the log standard deviations (metres), ``rot_*`` the quaternion
-``(w, x, y, z)``, normals zero, and the colour as the degree-0 spherical-harmonic coefficient
-``f_dc = (rgb - 0.5) / C0``, ``C0 = 0.28209479177387814`` (no ``f_rest_*``: SH degree 0). Our own
-property ``int anchor_id`` (the keyframe each Gaussian is anchored to) follows; viewers ignore it.
+with ``opacity`` the logit, ``scale_*`` the log standard deviations (metres), ``rot_*`` the unit quaternion
+``(w, x, y, z)`` (normalised on writing: the map stores it unnormalised), normals zero, and the colour as the
+degree-0 spherical-harmonic coefficient ``f_dc = (rgb - 0.5) / C0``, ``C0 = 0.28209479177387814``. The map's
+colour is view-independent, so the 45 higher-band coefficients are zero; they are written because loaders
+built for the original exporter expect ``3 (degree + 1)^2 - 3`` of them (a header comment states the degree).
+Our own property ``int anchor_id`` (the keyframe each Gaussian is anchored to) follows; loaders that look
+properties up by name ignore it (checked with PlayCanvas splat-transform in tests/test_mapping_ply.py).
 
 The sidecar ``<name>.json`` holds ``{"format", "version", "keyframes": [{"id", "T_WC" (4x4 rows),
 "timestamp_ns"}], "camera": {...} | null, "extra": {...}}``.
@@ -24,8 +29,11 @@ import torch
 from vigs_core.mapping.gaussians import GaussianMap
 
 SH_C0 = 0.28209479177387814
+SH_DEGREE = 3
+F_REST = [f"f_rest_{i}" for i in range(3 * (SH_DEGREE + 1) ** 2 - 3)]
 FLOAT_PROPERTIES = (
-    "x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3".split()
+    "x y z nx ny nz f_dc_0 f_dc_1 f_dc_2".split() + F_REST
+    + "opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3".split()
 )
 SIDECAR_FORMAT = "vigs-gaussian-map"
 SIDECAR_VERSION = 1
@@ -53,7 +61,7 @@ def save_ply(path: str | Path, gmap: GaussianMap) -> None:
     means = g.means.numpy()
     dc = ((g.colors - 0.5) / SH_C0).numpy()
     log_s = g.log_scales.numpy()
-    q = g.quats.numpy()
+    q = torch.nn.functional.normalize(g.quats, dim=-1).numpy()
     for i, axis in enumerate("xyz"):
         rows[axis] = means[:, i]
         rows[f"f_dc_{i}"] = dc[:, i]
@@ -62,7 +70,9 @@ def save_ply(path: str | Path, gmap: GaussianMap) -> None:
         rows[f"rot_{i}"] = q[:, i]
     rows["opacity"] = g.opacity_logits.numpy()
     rows["anchor_id"] = g.anchor_ids.numpy().astype(np.int32)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header = ["ply", "format binary_little_endian 1.0",
+              f"comment SH degree {SH_DEGREE}: f_rest_* are zero, the colour is view-independent",
+              f"element vertex {n}"]
     header += [f"property float {name}" for name in FLOAT_PROPERTIES] + ["property int anchor_id", "end_header"]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -115,7 +125,7 @@ def load_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> GaussianMa
 
     Gaussians get ids ``0..N-1``; ``anchor_id`` is -1 when the file has none."""
     v = read_ply_vertices(path)
-    needed = [p for p in FLOAT_PROPERTIES if not p.startswith("n")]
+    needed = [p for p in FLOAT_PROPERTIES if not p.startswith(("n", "f_rest"))]
     missing = [p for p in needed if p not in v.dtype.names]
     if missing:
         raise ValueError(f"{path}: PLY lacks the 3DGS properties {missing}")
