@@ -73,6 +73,12 @@ def test_an_imu_gap_is_not_integrated_across(clean):
     assert stream.metric and not stream.odometry.vio.failures   # bridged, not a failure
     assert len(stream.odometry.final_frame_poses()[0]) == len(clean_stream.odometry.final_frame_poses()[0])
     assert ate <= GAP_ATE_M, (ate, clean_ate)
+    t, v = stream.odometry.frame_velocities()   # velocity.txt: frames are not propagated across the gap
+    keyframe_stamps = [kf.t_ns for kf in stream.odometry.keyframes.values()]
+    inside = (t > t0) & (t < t0 + int(GAP_S * 1e9)) & ~np.isin(t, keyframe_stamps)
+    speed = v.norm(dim=1).numpy()
+    assert inside.any() and np.isnan(speed[inside]).all()
+    assert np.isfinite(speed[t > t0 + int(GAP_S * 1e9) + 10**9]).all() and np.nanmax(speed) < 3.0
 
 
 def test_a_future_stamped_imu_sample_is_rejected(clean):

@@ -55,8 +55,7 @@ import torch
 
 from vigs_core.frontend.odometry import DenseOdometry, Keyframe, OdometryConfig
 from vigs_core.imu.buffer import ImuBuffer
-from vigs_core.imu.preintegration import preintegrate
-from vigs_core.imu.propagation import ImuState, predict_state
+from vigs_core.imu.preintegration import preintegrate_intervals
 from vigs_core.geometry import se3_inverse
 from vigs_core.solver import BAResult, EdgeSet, Intrinsics
 from vigs_core.solver.normal_equations import linearize_visual, schur_reduce
@@ -301,26 +300,34 @@ class VisualInertialOdometry(DenseOdometry):
     # ------------------------------------------------------------------ outputs
     def frame_velocities(self) -> tuple[np.ndarray, torch.Tensor]:
         """Stamps (N,) ns and body velocities (N, 3) m/s in the world of every posed frame, propagated by the
-        IMU from the frame's reference keyframe state; NaN while the map is not metric."""
-        t, vel = [], []
-        g = tuple(float(x) for x in self.vio.gravity_world())
-        for f in self.frames:
-            if f.ref is None:
-                continue
-            t.append(f.t_ns)
-            if not self.vio.metric:
-                vel.append(torch.full((3,), float("nan"), dtype=torch.float64))
-                continue
+        IMU from the frame's reference keyframe state, ``v = v_k + g dt + R_wb,k dv_kf`` (all frames in one
+        batched preintegration at their keyframes' biases); NaN while the map is not metric and for a frame
+        whose interval holds an IMU gap over ``max_imu_gap_s`` (not integrated across)."""
+        posed = [f for f in self.frames if f.ref is not None]
+        t = np.array([f.t_ns for f in posed], dtype=np.int64)
+        vel = torch.full((len(posed), 3), float("nan"), dtype=torch.float64)
+        if not self.vio.metric:
+            return t, vel
+        at_kf, between = [], []
+        for n, f in enumerate(posed):
             st = self.vio.states[f.ref]
             if f.t_ns == st.t_ns:
-                vel.append(st.velocity.clone())
-                continue
-            b = self.vio.bias_of(f.ref)
-            T_wb = se3_inverse(self.keyframes[f.ref].pose) @ self.vio.T_cb
-            pre = preintegrate(self.vio.imu, st.t_ns, f.t_ns, self.vio.noise, b[:3], b[3:], self.vio_config.scheme)
-            state = ImuState(st.t_ns, T_wb[:3, :3], T_wb[:3, 3], st.velocity, b[:3], b[3:])
-            vel.append(predict_state(state, pre, gravity=g).v)
-        return np.array(t, dtype=np.int64), torch.stack(vel) if vel else torch.zeros(0, 3, dtype=torch.float64)
+                at_kf.append(n)
+            elif self.vio.imu_covers(st.t_ns, f.t_ns):
+                between.append(n)
+        for n in at_kf:
+            vel[n] = self.vio.states[posed[n].ref].velocity
+        if between:
+            refs = [posed[n].ref for n in between]
+            b = torch.stack([self.vio.bias_of(k) for k in refs])
+            pre = preintegrate_intervals(self.vio.imu, [self.vio.states[k].t_ns for k in refs], t[between],
+                                         self.vio.noise, b[:, :3], b[:, 3:], self.vio_config.scheme)
+            R_wb = torch.stack([se3_inverse(self.keyframes[k].pose.to(torch.float64))[:3, :3] @ self.vio.T_cb[:3, :3]
+                                for k in refs])
+            v0 = torch.stack([self.vio.states[k].velocity for k in refs])
+            g = self.vio.gravity_world()
+            vel[between] = v0 + g * pre.dt[:, None] + (R_wb @ pre.delta_v[..., None])[..., 0]
+        return t, vel
 
     def keyframe_states(self) -> dict:
         """JSON-ready per-keyframe inertial states: stamps, velocities (m/s), biases (b_g rad/s, b_a m/s^2)."""
