@@ -71,7 +71,7 @@ def row(sequence: str, label: str, report: dict) -> dict:
     out.update({f"{k}_ms": round(1000 * timings.get(v, 0.0) / n, 1) for k, v in STAGES.items()})
     out.update({"ate_se3": round(100 * se3.get("ate_rmse", float("nan")), 2),
                 "ate_sim3": round(100 * sim3.get("ate_rmse", float("nan")), 2),
-                "rec10": se3.get("recall@0.1")})
+                "rec10": round(se3.get("recall@0.1", float("nan")), 3)})
     return out
 
 
