@@ -143,6 +143,39 @@ def test_dataclass_specs_recurse_and_nest():
     assert nested(values, "x.") == {"a": 3, "b": [1.0, 2.0], "inner": {"preset": "fast", "sigma": 1.0}}
 
 
+def test_parameter_descriptions_come_from_the_config_docstrings():
+    """Google-style ``Args:`` entries: one name or several sharing a text, continuation lines joined, the
+    section ending at a blank line; every parameter every node declares has a described field."""
+    import importlib
+    from dataclasses import dataclass
+
+    @dataclass
+    class Cfg:
+        """Settings.
+
+        Args:
+            width, height: processing size,
+                pixels.
+            rate: samples per second.
+
+        Not an entry: text after the section.
+        """
+
+        width: int = 1
+        height: int = 2
+        rate: float = 3.0
+        undocumented: int = 4
+
+    assert {s.name: s.description for s in dataclass_specs(Cfg)} == {
+        "width": "processing size, pixels.", "height": "processing size, pixels.", "rate": "samples per second.",
+        "undocumented": "Cfg.undocumented"}
+    for node in ("frontend_node", "mapper_node", "loop_detector_node", "imu_preintegration_node"):
+        module = importlib.import_module(f"vigs_ros.{node}")
+        specs = [s for name in dir(module) if name.endswith("PARAMS") for s in getattr(module, name)]
+        assert specs and all(" " in s.description for s in specs), \
+            (node, [s.name for s in specs if " " not in s.description])
+
+
 def test_parse_remaps():
     assert parse_remaps(["/a:=/b", "/c:=/d"]) == {"/a": "/b", "/c": "/d"}
     with pytest.raises(ValueError, match="must look like"):

@@ -12,11 +12,15 @@ layout in Python, for checks and for tools that run without rcl.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import inspect
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
+_ENTRY = re.compile(r"([A-Za-z_]\w*(?:,\s*[A-Za-z_]\w*)*):\s*(.*)")
 
 
 @dataclass(frozen=True)
@@ -79,9 +83,37 @@ def dataclass_specs(config, prefix: str = "", skip: tuple[str, ...] = ()) -> lis
         ok_list = isinstance(default, list) and default and all(isinstance(v, (int, float)) for v in default)
         if not (isinstance(default, (bool, int, float, str)) or ok_list):
             continue
-        specs.append(ParamSpec(prefix + f.name, default, f"{cls.__name__}.{f.name} (see its docstring)",
+        description = field_descriptions(cls).get(f.name) or f"{cls.__name__}.{f.name}"
+        specs.append(ParamSpec(prefix + f.name, default, description,
                                dynamic_typing=not isinstance(default, (bool, str))))
     return specs
+
+
+@functools.cache
+def field_descriptions(cls: type) -> dict[str, str]:
+    """``{field: description}`` from the ``Args:`` / ``Attributes:`` section of a config class's docstring (the
+    one source of its documentation; Google style: ``name: text`` or ``a, b: text`` at one indentation,
+    continuation lines deeper, a blank line ends the section), whitespace joined."""
+    out: dict[str, str] = {}
+    names: list[str] = []
+    indent = None
+    in_section = False
+    for line in inspect.cleandoc(cls.__doc__ or "").splitlines():
+        text, lead = line.strip(), len(line) - len(line.lstrip())
+        if text in ("Args:", "Attributes:"):
+            in_section, indent, names = True, None, []
+            continue
+        if not in_section:
+            continue
+        entry = _ENTRY.fullmatch(text)
+        if not text or (indent is not None and lead < indent):
+            in_section = False
+        elif entry and (indent is None or lead == indent):
+            indent, names = lead, [n.strip() for n in entry.group(1).split(",")]
+            out.update({n: entry.group(2) for n in names})
+        elif names and lead > indent:
+            out.update({n: f"{out[n]} {text}" for n in names})
+    return out
 
 
 def nested(values: dict[str, Any], prefix: str) -> dict[str, Any]:
