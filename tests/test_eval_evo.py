@@ -1,4 +1,5 @@
-"""ATE agrees with evo's APE (translation part) on real EuRoC ground truth, via the API and `vigs eval`."""
+"""ATE agrees with evo's APE (translation part) and RPE with evo's (all pairs along the reference's path) on real
+EuRoC ground truth, via the API and `vigs eval`."""
 import json
 import subprocess
 import sys
@@ -104,3 +105,28 @@ def test_cli_table_rpe_and_errors(tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert f"{bad}, line 3: expected 8 columns" in done.stderr
+
+
+@pytest.mark.parametrize("delta", [0.25, 1.0])
+def test_rpe_matches_evo_all_pairs_from_the_reference(tmp_path, delta):
+    """``evo_rpe --delta D --delta_unit m --all_pairs --pairs_from_reference`` after the same SE(3) alignment:
+    the same pairs and the same translation and rotation statistics."""
+    est_path = perturbed_estimate(tmp_path / "est.txt", "tum")
+    ref = file_interface.read_euroc_csv_trajectory(str(GT_CSV))
+    est = file_interface.read_tum_trajectory_file(str(est_path))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=MAX_DIFF_S)
+    est.align(ref)
+    evo_stats = {}
+    for relation, name in ((metrics.PoseRelation.translation_part, "trans"),
+                           (metrics.PoseRelation.rotation_angle_deg, "rot")):
+        rpe = metrics.RPE(relation, delta=delta, delta_unit=metrics.Unit.meters, all_pairs=True,
+                          pairs_from_reference=True)
+        rpe.process_data((ref, est))
+        evo_stats[name] = rpe.get_all_statistics()
+        pairs = len(rpe.error)
+    ours = evaluate_trajectory(read_trajectory(GT_CSV), read_trajectory(est_path), align="se3",
+                               max_diff_s=MAX_DIFF_S, rpe_delta=delta, rpe_unit="m")
+    assert ours["rpe_pairs"] == pairs > 10
+    for name in ("rmse", "mean", "median", "max"):
+        assert abs(ours[f"rpe_trans_{name}"] - evo_stats["trans"][name]) < 1e-6, name
+        assert abs(ours[f"rpe_rot_{name}"] - evo_stats["rot"][name]) < 1e-6, name

@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 
 RPE_UNITS = ("m", "s")
+RPE_REL_TOL = 0.1
 
 
 def translation_errors(gt_positions: np.ndarray, est_positions: np.ndarray) -> np.ndarray:
@@ -58,18 +59,23 @@ def rotation_angle(rotations: np.ndarray) -> np.ndarray:
     return np.arctan2(sin, cos)
 
 
-def rpe_pairs(gt_positions: np.ndarray, t_ns: np.ndarray, delta: float, unit: str) -> tuple[np.ndarray, np.ndarray]:
-    """Pose pairs ``(i, j)`` about ``delta`` apart along the ground truth.
+def rpe_pairs(gt_positions: np.ndarray, t_ns: np.ndarray, delta: float, unit: str,
+              rel_tol: float = RPE_REL_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """Pose pairs ``(i, j)`` about ``delta`` apart along the ground truth: evo's all-pairs rule.
 
-    The coordinate ``d`` is the cumulative ground-truth path length (``unit="m"``) or the time
-    (``unit="s"``). Every pose ``i`` starts a pair (overlapping pairs); ``j`` is the later pose whose
-    ``d_j - d_i`` is closest to ``delta``; poses with less than ``delta`` of trajectory left are skipped.
+    The coordinate ``d`` is the cumulative ground-truth path length (``unit="m"``) or the time (``unit="s"``).
+    Every pose ``i`` but the last starts a candidate pair (overlapping pairs); ``j > i`` minimises
+    ``|(d_j - d_i) - delta|`` (the first such pose on ties) and the pair is kept when that is at most
+    ``rel_tol * delta``. With ``unit="m"`` these are the pairs of ``evo_rpe --delta_unit m --all_pairs
+    --pairs_from_reference`` (evo's ``filter_pairs_by_path``, relative tolerance 0.1 by default); evo has no time
+    unit, the same rule is applied to time.
 
     Args:
         gt_positions: (N, 3) associated ground-truth positions (m), in time order.
         t_ns: (N,) int64 their stamps (ns).
         delta: pair spacing (> 0), metres or seconds.
         unit: ``"m"`` or ``"s"``.
+        rel_tol: accepted deviation from ``delta``, as a fraction of it.
 
     Returns:
         ``(i, j)``: (K,) index arrays with ``i < j``.
@@ -84,12 +90,20 @@ def rpe_pairs(gt_positions: np.ndarray, t_ns: np.ndarray, delta: float, unit: st
     else:
         t_ns = np.asarray(t_ns, dtype=np.int64)
         d = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
-    i = np.flatnonzero(d + delta <= d[-1])
-    target = d[i] + delta
-    after = np.searchsorted(d, target, side="left")  # first d >= target (exists since target <= d[-1])
-    before = np.maximum(after - 1, i + 1)
-    j = np.where(np.abs(d[before] - target) < np.abs(d[after] - target), before, after)
-    return i, j
+    n = len(d)
+    i = np.arange(n - 1)
+    if n < 2:
+        return i, i
+    # d is non-decreasing, so the nearest pose is next to the first one at or past d_i + delta: the candidates
+    # around it, each moved to the first pose of its value (an argmin takes the first minimum), ascending
+    first = np.searchsorted(d, d[i] + delta, side="left")
+    near = np.clip(first[:, None] + np.arange(-1, 2), i[:, None] + 1, n - 1)
+    near = np.maximum(np.searchsorted(d, d[near], side="left"), i[:, None] + 1)
+    miss = np.abs((d[near] - d[i, None]) - delta)   # evo's expression
+    pick = np.argmin(miss, axis=1)
+    j = near[i, pick]
+    keep = miss[i, pick] <= rel_tol * delta
+    return i[keep], j[keep]
 
 
 def rpe(
