@@ -9,7 +9,8 @@ Layouts (stamps in integer nanoseconds, ``#`` header line):
   Pose-only files with the first 8 columns (``vicon0/data.csv``, TUM-VI ``mocap0``) are read too.
 * ``cam0/data.csv``: ``timestamp, filename``; images in ``cam0/data/<filename>``.
 
-Readers return rows sorted by stamp and reject repeated stamps (see :func:`stamp_order`).
+Readers return rows sorted by stamp and reject repeated stamps, except the ground-truth reader, which keeps
+the first row of each with a warning (see :func:`stamp_order`).
 """
 from __future__ import annotations
 
@@ -62,11 +63,12 @@ def read_euroc_groundtruth(csv: str | Path) -> Trajectory:
     """Read an EuRoC ground-truth CSV (17 columns, or 8 pose-only columns) into a :class:`Trajectory`.
 
     With 17 columns the trajectory carries ``velocity``, ``bias_gyro`` and ``bias_acc``; with 8 they
-    are ``None``. Quaternions are ``(w, x, y, z)`` in the file and in :class:`Trajectory`.
+    are ``None``. Quaternions are ``(w, x, y, z)`` in the file and in :class:`Trajectory`. A repeated stamp keeps
+    its first row, with a warning.
     """
     t_ns, values, lines = read_stamped_rows(csv, (8, 17), "comma", "ns", GROUNDTRUTH_LAYOUT)
     quat = normalized_quaternions(csv, values[:, 3:7], lines)
-    order = stamp_order(csv, t_ns, lines)
+    order = stamp_order(csv, t_ns, lines, keep_first=True)
     values, quat = values[order], quat[order]
     if values.shape[1] == 7:
         return Trajectory(t_ns[order], values[:, 0:3], quat)

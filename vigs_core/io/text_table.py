@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -174,8 +175,9 @@ def normalized_quaternions(path: str | Path, quat: np.ndarray, line_numbers: np.
     return quat / norm[:, None]
 
 
-def stamp_order(path: str | Path, t_ns: np.ndarray, line_numbers: np.ndarray) -> np.ndarray:
-    """Indices (N,) that sort rows by stamp (stable); a stamp that occurs twice is an error.
+def stamp_order(path: str | Path, t_ns: np.ndarray, line_numbers: np.ndarray, keep_first: bool = False) -> np.ndarray:
+    """Indices that sort rows by stamp (stable); a stamp that occurs twice is an error, or with ``keep_first``
+    (trajectories to evaluate, which evo reads with repeated stamps) only its first row is kept, with a warning.
 
     Recorded files are almost always sorted already; sorting here means consumers never see time run
     backwards, and a repeated stamp (zero time step, ambiguous association) is reported with both lines.
@@ -184,9 +186,10 @@ def stamp_order(path: str | Path, t_ns: np.ndarray, line_numbers: np.ndarray) ->
     repeated = np.flatnonzero(np.diff(t_ns[order]) == 0)
     if len(repeated):
         first, second = order[repeated[0]], order[repeated[0] + 1]
-        raise MalformedFileError(
-            path,
-            int(line_numbers[second]),
-            f"time stamp {t_ns[second]} ns repeats the stamp of line {line_numbers[first]}; expected unique stamps",
-        )
+        problem = f"time stamp {t_ns[second]} ns repeats the stamp of line {line_numbers[first]}"
+        if not keep_first:
+            raise MalformedFileError(path, int(line_numbers[second]), f"{problem}; expected unique stamps")
+        warnings.warn(f"{path}:{int(line_numbers[second])}: {problem}; {len(repeated)} repeated stamp(s) in all, "
+                      "the first row of each is kept", stacklevel=2)
+        order = np.delete(order, repeated + 1)
     return order

@@ -25,13 +25,15 @@ TUM_LAYOUT = "timestamp[s] tx ty tz qx qy qz qw"
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file into a :class:`Trajectory` (rows sorted by stamp).
 
+    A repeated stamp keeps its first row, with a warning (evo reads such files too).
+
     Raises:
-        MalformedFileError: a line without 8 fields, an unparsable number, a non-unit quaternion or a
-            repeated stamp (the message names file and line).
+        MalformedFileError: a line without 8 fields, an unparsable number or a non-unit quaternion (the message
+            names file and line).
     """
     t_ns, values, lines = read_stamped_rows(path, (8,), "whitespace_or_comma", "s", TUM_LAYOUT)
     quat_xyzw = normalized_quaternions(path, values[:, 3:7], lines)
-    order = stamp_order(path, t_ns, lines)
+    order = stamp_order(path, t_ns, lines, keep_first=True)
     quat_wxyz = np.concatenate((quat_xyzw[:, 3:], quat_xyzw[:, :3]), axis=1)
     return Trajectory(t_ns[order], values[order, :3], quat_wxyz[order])
 
