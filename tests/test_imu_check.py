@@ -74,8 +74,19 @@ def test_cli_on_euroc_folder_json(tmp_path, capsys):
     assert still["start_s"] < 2.0 and abs(still["gravity_magnitude"] - 9.81) < 0.05
     c = report["preintegration_consistency"]
     assert c["bias_source"] == "ground truth" and c["windows"] >= 10
-    # EuRoC's datasheet densities understate the vibrating platform's noise: NEES/dof well above 1
+    # EuRoC's datasheet densities understate the vibrating platform's noise: NEES/dof well above 1, and the
+    # verdict says by how much to inflate them
     assert 1 < c["mean_nees_per_dof"] < 1e4
+    factor = np.sqrt(c["mean_nees_per_dof"])
+    assert c["verdict"].startswith("optimistic") and f"{factor:.1f}x" in c["verdict"]
+
+
+def test_nees_verdicts():
+    from vigs_core.imu.check import nees_verdict
+
+    assert nees_verdict(1.0).startswith("consistent") and nees_verdict(1.9).startswith("consistent")
+    assert "2.0x" in nees_verdict(4.0) and nees_verdict(4.0).startswith("optimistic")
+    assert nees_verdict(0.25).startswith("pessimistic") and "0.50x" in nees_verdict(0.25)
 
 
 def test_cli_counts_the_disorder_of_a_shuffled_file(tmp_path, capsys):

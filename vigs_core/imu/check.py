@@ -24,6 +24,10 @@ from vigs_core.imu.samples import find_stream_defects, sanitize_samples
 from vigs_core.imu.static_init import StaticDetectorConfig, detect_static_segments, static_initialize
 from vigs_core.types import ImuNoise, ImuSamples, Trajectory
 
+NEES_CONSISTENT = (0.5, 2.0)
+"""Mean NEES per degree of freedom taken as consistent: a practical band around 1 (a factor 1.4 on the standard
+deviations either way), wider than the chi-square spread of a mean over tens of windows."""
+
 
 @dataclass
 class ImuCheckConfig:
@@ -117,16 +121,32 @@ def preintegration_consistency(
     for name, sl in (("rotation", slice(0, 3)), ("velocity", slice(3, 6)), ("position", slice(6, 9))):
         Wp = torch.linalg.inv(pre.cov[:, sl, sl])
         parts[name] = float(((r[:, None, sl] @ Wp @ r[:, sl, None])[:, 0, 0] / 3).mean())
+    mean = float((nees / 9).mean())
     return {
         "windows": int(len(i)),
         "window_s": float(np.median((t_ns[j] - t_ns[i]) * 1e-9)),
-        "mean_nees_per_dof": float((nees / 9).mean()),
+        "mean_nees_per_dof": mean,
+        "verdict": nees_verdict(mean),
         "median_nees_per_dof": float((nees / 9).median()),
         "per_block_nees_per_dof": parts,
         "bias_source": bias_source,
         "bias_gyro": b_i[0, :3].tolist(),
         "bias_acc": b_i[0, 3:].tolist(),
     }
+
+
+def nees_verdict(nees_per_dof: float, band: tuple[float, float] = NEES_CONSISTENT) -> str:
+    """What a mean NEES per degree of freedom says about the configured noise densities: about 1 when the
+    preintegration covariance matches the actual errors (within ``band``); above, the errors are
+    ``sqrt(NEES/dof)`` times what the densities predict (vibration, unmodelled errors: inflate them, or the
+    estimator will trust the IMU too much); below, the densities are pessimistic."""
+    factor = float(np.sqrt(nees_per_dof))
+    if nees_per_dof > band[1]:
+        return (f"optimistic: the errors are {factor:.1f}x what the configured noise densities predict "
+                "(vibration, unmodelled errors); inflate the densities by about that factor")
+    if nees_per_dof < band[0]:
+        return f"pessimistic: the errors are {factor:.2f}x what the configured noise densities predict"
+    return "consistent with the configured noise densities"
 
 
 def check_imu(
@@ -221,4 +241,5 @@ def format_report(report: dict) -> str:
             f"consistency      mean NEES/dof {c['mean_nees_per_dof']:.2f} (median {c['median_nees_per_dof']:.2f}) "
             f"over {c['windows']} windows of {c['window_s']:.2f} s; {parts}; biases: {c['bias_source']}"
         )
+        lines.append(f"                 {c['verdict']}")
     return "\n".join(lines)
