@@ -196,10 +196,22 @@ def test_odometry_covariance_and_frame_status_follow_the_metric_claim(graph):
     before = [s for t, s in sorted(status.items()) if t <= init_ns]
     assert before == ["initialising"] * len(before)
     assert {s for t, s in status.items() if t > init_ns} == {"tracking"}
+    known = 0
     for o in odometry:   # the initialisation frame is published before the alignment: not yet metric
         std = np.sqrt(np.diag(o["pose_covariance"]))
         expected = [1000.0] * 6 if o["t_ns"] <= init_ns else [0.05] * 3 + [0.01] * 3
         np.testing.assert_allclose(std, expected, rtol=1e-9, err_msg=str(o["t_ns"]))
+        # the twist: zero and unknown until metric; after, the IMU-propagated one (tests/test_odometry_twist.py)
+        # unless the frame had no IMU prediction
+        twist_std = np.sqrt(np.diag(o["twist_covariance"]))
+        twist = np.concatenate((o["velocity_world"], o["angular_velocity_body"]))
+        if o["t_ns"] > init_ns and twist_std[0] < 1.0:
+            np.testing.assert_allclose(twist_std, [0.03] * 3 + [0.07] * 3, rtol=1e-9)
+            known += 1
+        else:
+            np.testing.assert_allclose(twist_std, [1000.0] * 6, rtol=1e-9)
+            assert not twist.any(), o["t_ns"]
+    assert known >= 0.9 * sum(o["t_ns"] > init_ns for o in odometry) > 0
 
 
 def test_recorded_trajectory_matches_groundtruth_after_imu_init(graph):

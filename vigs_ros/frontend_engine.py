@@ -84,6 +84,7 @@ class FrontendEngine:
         self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
         self._metric = False
         self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
+        self.T_cb = np.linalg.inv(np.asarray(T_bc, dtype=np.float64))
 
     @property
     def inertial(self) -> bool:
@@ -182,6 +183,16 @@ class FrontendEngine:
         out[:3, :3] = R.T @ T_wc[:3, :3]
         out[:3, 3] = R.T @ (T_wc[:3, 3] - C[:3, 3]) / c
         return out
+
+    def body_twist(self, t_ns: int, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Linear (m/s) and angular (rad/s) velocity in the body frame of the frame at ``t_ns`` with camera pose
+        ``T_wc`` (4, 4), from the core's :meth:`~vigs_core.vio.odometry.VisualInertialOdometry.frame_twist`
+        (``v_b = R_wb^T v_w``); None without one (not metric, across an IMU gap, vision only)."""
+        twist = self.odometry.frame_twist(t_ns) if self.inertial else None
+        if twist is None:
+            return None
+        R_wb = T_wc[:3, :3] @ self.T_cb[:3, :3]
+        return R_wb.T @ twist[0].numpy(), twist[1].numpy()
 
     def keyframe_state(self, kf_id: int) -> KeyframeState:
         """The keyframe's velocity and biases (zeros for the vision-only core)."""

@@ -329,6 +329,19 @@ class VisualInertialOdometry(DenseOdometry):
             vel[between] = v0 + g * pre.dt[:, None] + (R_wb @ pre.delta_v[..., None])[..., 0]
         return t, vel
 
+    def frame_twist(self, t_ns: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The twist of the frame at ``t_ns`` when it was the last one tracked with an IMU prediction: velocity
+        (3,) m/s in the world (the keyframe state propagated by the IMU to the frame, as its pose prediction)
+        and angular velocity (3,) rad/s in the body (the gyro sample nearest the frame minus the newest
+        keyframe's gyro bias); None before the map is metric, across an IMU gap, or for another frame."""
+        if self._prediction is None or self._prediction[0] != int(t_ns) or not self._prediction[1].from_imu:
+            return None
+        imu = self.vio.imu_buffer.samples(int(t_ns), int(t_ns))
+        nearest = int(np.argmin(np.abs(imu.t_ns - int(t_ns))))
+        bias = self.vio.bias_of(self.graph.keyframes[-1])
+        omega = torch.from_numpy(np.asarray(imu.gyro[nearest], dtype=np.float64)) - bias[:3]
+        return self._prediction[1].velocity.clone(), omega
+
     def keyframe_states(self) -> dict:
         """JSON-ready per-keyframe inertial states: stamps, velocities (m/s), biases (b_g rad/s, b_a m/s^2)."""
         ids = sorted(self.vio.states)
