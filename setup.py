@@ -16,6 +16,9 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.xml")),
+        # colcon: the nodes' executables where `ros2 run vigs_ros <exec>` looks (pip puts console scripts in bin)
+        (f"lib/{PACKAGE}", sorted(glob("ros_executables/*"))),
     ],
     install_requires=["numpy", "scipy", "pyyaml", "opencv-python-headless", "torch"],
     zip_safe=True,

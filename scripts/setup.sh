@@ -28,6 +28,9 @@ echo "[setup] installing pinned dependencies (torch 2.13.0 CPU via requirements/
 bash scripts/build_interfaces.sh
 echo "[setup] installing PlayCanvas splat-transform from npm (a 3DGS PLY reader the tests load map.ply with)"
 (cd tools/splat_transform && npm ci --no-audit --no-fund --ignore-scripts --loglevel=error)
+echo "[setup] installing colcon from PyPI into tools/colcon_venv (the tests build the package with it)"
+"$PY" -m venv tools/colcon_venv
+tools/colcon_venv/bin/python -m pip install --quiet colcon-common-extensions==0.3.0
 echo "[setup] installing the project (editable)"
 "$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e .
 echo "$hash" > "$STAMP"

@@ -91,6 +91,39 @@ def test_commands_pass_params_and_sim_time(tmp_path):
     assert list(composed) == ["graph"] and composed["graph"][2:5] == ["vigs_ros.graph", "mapper", "loop_detector"]
 
 
+def test_vigs_launch_follows_the_launch_file(tmp_path):
+    """The shipped launch XML names the graph's nodes; `vigs launch` starts exactly those with the XML's parameter
+    files (then the user's) and remaps; a launch file with something it does not understand is an error."""
+    from vigs_ros.graph import NODES
+    from vigs_ros.launch_file import read_launch_file
+
+    shipped = read_launch_file()
+    assert [n.name for n in shipped] == list(NODES) and all(n.exec == f"vigs_{n.name}" for n in shipped)
+    cmds = commands(LaunchConfig())
+    for node in shipped:
+        args = cmds[node.name]
+        assert [args[i + 1] for i, a in enumerate(args) if a == "--params-file"] == [str(f) for f in node.params]
+    extra = tmp_path / "mine.yaml"
+    extra.write_text("mapper:\n  ros__parameters:\n    map_path: /tmp/x.ply\n")
+    custom = tmp_path / "custom.launch.xml"
+    custom.write_text(f"""<launch>
+  <arg name="dir" default="{extra.parent}"/>
+  <node pkg="vigs_ros" exec="vigs_mapper" name="mapper">
+    <param from="$(var dir)/mine.yaml"/>
+    <remap from="/vigs/keyframes" to="/robot/keyframes"/>
+  </node>
+</launch>""")
+    cmds = commands(LaunchConfig(launch_file=custom, nodes=["mapper"]))
+    assert list(cmds) == ["mapper"]
+    args = cmds["mapper"]
+    assert args[args.index("--params-file") + 1] == str(extra) and "/vigs/keyframes:=/robot/keyframes" in args
+    with pytest.raises(ValueError, match="unknown node"):
+        commands(LaunchConfig(launch_file=custom, nodes=["frontend"]))
+    custom.write_text(custom.read_text().replace("$(var dir)", "$(env HOME)"))
+    with pytest.raises(ValueError, match=r"unsupported substitution \$\(env HOME\)"):
+        commands(LaunchConfig(launch_file=custom, nodes=["mapper"]))
+
+
 def test_bag_input_remaps_by_message_type(tmp_path):
     from msg_adapters.image import numpy_to_compressed
 

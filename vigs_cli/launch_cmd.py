@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from vigs_ros.graph import NODES, node_params
     from vigs_ros.launch import LaunchConfig, bag_input_remaps, launch
-    from vigs_ros.params import check_params_file, default_params_files, load_params_file
+    from vigs_ros.launch_file import read_launch_file
+    from vigs_ros.params import check_params_file, load_params_file
 
     try:   # before anything reads them
         specs = node_params()
@@ -60,13 +61,17 @@ def run(args: argparse.Namespace) -> int:
         for item in remaps:
             replay_args += ["--remap", item]
         # start replaying once the frontend and the IMU node listen on their (parameterised) inputs
-        files = [*default_params_files(), *args.params]
         inputs = {"frontend": ("image_topic", "/image"), "imu_preintegration": ("imu_topic", "/imu")}
+        try:
+            launch_files = {node.name: node.params for node in read_launch_file()}
+        except ValueError as exc:
+            print(f"[launch] error: {exc}")
+            return 2
         for node, (key, default) in inputs.items():
             if args.nodes and node not in args.nodes:
                 continue
             topic = default
-            for f in files:
+            for f in [*launch_files.get(node, []), *args.params]:
                 topic = load_params_file(f, node).get(key, topic)
             replay_args += ["--wait-for", topic]
         replay_args += ["--wait-timeout", "60", "--settle", str(args.settle), "--ack-timeout", str(args.ack_timeout)]

@@ -1,10 +1,13 @@
 """Launcher of the VIGS graph (``vigs launch``): the nodes as separate processes (default) or all in one
 process (``composed``), optionally with a bag replay feeding them.
 
-Every node process gets ``--ros-args --params-file`` for the shipped ``params/*.yaml`` (``ros.yaml`` first)
-and then the user's files (later files override earlier ones; each is checked first against the nodes' declared
-parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), plus
-``-p use_sim_time:=true`` when a bag is replayed (nodes run on the bag's ``/clock``).
+The nodes, their executables, parameter files and remaps come from the graph's ROS launch file
+(``launch/vigs.launch.xml``, :mod:`vigs_ros.launch_file`), the one ``ros2 launch vigs_ros vigs.launch.xml`` runs.
+Every node process gets ``--ros-args --params-file`` for its files there (``ros.yaml``, then the node's own) and
+then the user's files (later files override earlier ones; each is checked first against the nodes' declared
+parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), its
+remaps, and ``-p use_sim_time:=true`` when a bag is replayed (nodes run on the bag's ``/clock``). The composed
+process gets the files and remaps of all its nodes.
 
 Supervision: children run in their own sessions, so a terminal's Ctrl-C reaches only the launcher, which
 forwards SIGINT/SIGTERM as SIGINT to every child (nodes close cleanly: the mapper saves its map), waits up to
@@ -22,7 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vigs_ros.graph import NODES, node_params
-from vigs_ros.params import check_params_file, default_params_files
+from vigs_ros.launch_file import LAUNCH_FILE, LaunchNode, read_launch_file
+from vigs_ros.params import check_params_file
 
 
 @dataclass
@@ -36,6 +40,7 @@ class LaunchConfig:
         ros_args: extra ``--ros-args`` items for every node (e.g. ``["-p", "torch_threads:=1"]``).
         linger_s: after the replay ends, time for the graph to drain before shutdown (s).
         shutdown_timeout_s: time a child gets to exit after SIGINT before SIGTERM / SIGKILL (s).
+        launch_file: the graph's launch XML (nodes, parameter files, remaps).
     """
 
     bag: str | None = None
@@ -46,6 +51,7 @@ class LaunchConfig:
     ros_args: list[str] = field(default_factory=list)
     linger_s: float = 3.0
     shutdown_timeout_s: float = 30.0
+    launch_file: Path = LAUNCH_FILE
 
 
 def bag_input_remaps(bag: str | Path) -> tuple[list[str], list[str]]:
@@ -74,9 +80,25 @@ def bag_input_remaps(bag: str | Path) -> tuple[list[str], list[str]]:
     return remaps, ros_args
 
 
-def node_ros_args(cfg: LaunchConfig) -> list[str]:
-    """``--ros-args`` of every node process."""
-    files = [*default_params_files(), *map(Path, cfg.params)]
+def launch_nodes(cfg: LaunchConfig) -> list[LaunchNode]:
+    """The launch file's nodes that ``cfg`` starts, in its order; each must be a graph node run by its executable
+    ``vigs_<name>``."""
+    nodes = read_launch_file(cfg.launch_file)
+    for node in nodes:
+        if node.name not in NODES or node.exec != f"vigs_{node.name}":
+            raise ValueError(f"launch file {cfg.launch_file}: node {node.name!r} with executable {node.exec!r}; "
+                             f"expected one of {[f'vigs_{n}' for n in NODES]} named after it")
+    missing = [n for n in cfg.nodes if n not in {node.name for node in nodes}]
+    if missing:
+        raise ValueError(f"unknown node(s) {missing}; the launch file {cfg.launch_file} has "
+                         f"{[node.name for node in nodes]}")
+    return [node for node in nodes if node.name in cfg.nodes]
+
+
+def node_ros_args(cfg: LaunchConfig, nodes: list[LaunchNode]) -> list[str]:
+    """``--ros-args`` of a process running ``nodes``: their parameter files (each once, in order), the user's,
+    their remaps, sim time with a bag, and ``cfg.ros_args``."""
+    files = list(dict.fromkeys([f for node in nodes for f in node.params] + [Path(f) for f in cfg.params]))
     specs = node_params()
     for f in files:
         if not f.is_file():
@@ -85,6 +107,8 @@ def node_ros_args(cfg: LaunchConfig) -> list[str]:
     args = ["--ros-args"]
     for f in files:
         args += ["--params-file", str(f)]
+    for src, dst in dict.fromkeys(r for node in nodes for r in node.remaps):
+        args += ["-r", f"{src}:={dst}"]
     if cfg.bag is not None:
         args += ["-p", "use_sim_time:=true"]
     return args + list(cfg.ros_args)
@@ -92,15 +116,12 @@ def node_ros_args(cfg: LaunchConfig) -> list[str]:
 
 def commands(cfg: LaunchConfig) -> dict[str, list[str]]:
     """Child name -> command line (nodes, or one composed graph, then the replay)."""
-    for name in cfg.nodes:
-        if name not in NODES:
-            raise ValueError(f"unknown node {name!r}; expected some of {list(NODES)}")
-    ros_args = node_ros_args(cfg)
+    nodes = launch_nodes(cfg)
     py = sys.executable
     if cfg.composed:
-        cmds = {"graph": [py, "-m", "vigs_ros.graph", *cfg.nodes, *ros_args]}
+        cmds = {"graph": [py, "-m", "vigs_ros.graph", *[n.name for n in nodes], *node_ros_args(cfg, nodes)]}
     else:
-        cmds = {name: [py, "-m", NODES[name][0], *ros_args] for name in cfg.nodes}
+        cmds = {n.name: [py, "-m", NODES[n.name][0], *node_ros_args(cfg, [n])] for n in nodes}
     if cfg.bag is not None:
         cmds["replay"] = [py, "-m", "vigs_cli.main", "replay", str(cfg.bag), *cfg.replay_args]
     return cmds
