@@ -106,3 +106,17 @@ def test_splat_transform_reads_the_map(tmp_path):
     q = np.stack([col(f"rot_{i}") for i in range(4)], -1)
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, rtol=1e-6)
     np.testing.assert_array_equal(col("anchor_id"), gmap.anchor_ids.numpy())
+
+
+def test_plyfile_reads_the_map(tmp_path):
+    """The generic reader most Python 3DGS code uses (plyfile) sees one vertex element with the standard
+    properties, ours after them."""
+    from plyfile import PlyData
+
+    gmap = _random_map(11)
+    save_ply(tmp_path / "map.ply", gmap)
+    vertex = PlyData.read(str(tmp_path / "map.ply"))["vertex"]
+    assert vertex.count == 11
+    assert [p.name for p in vertex.properties] == STANDARD + ["anchor_id"]
+    np.testing.assert_allclose(vertex["scale_1"], gmap.log_scales[:, 1].numpy())
+    np.testing.assert_array_equal(vertex["f_rest_44"], 0.0)
