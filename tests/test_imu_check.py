@@ -79,6 +79,8 @@ def test_cli_on_euroc_folder_json(tmp_path, capsys):
     assert 1 < c["mean_nees_per_dof"] < 1e4
     factor = np.sqrt(c["mean_nees_per_dof"])
     assert c["verdict"].startswith("optimistic") and f"{factor:.1f}x" in c["verdict"]
+    # gravity magnitude that best explains the ground-truth motion with the ground truth's biases
+    assert abs(c["gravity_magnitude_fit"] - 9.81) < 0.05, c["gravity_magnitude_fit"]
 
 
 def test_nees_verdicts():

@@ -3,8 +3,9 @@
 Reports: sample rate and timestamp jitter; gaps, out-of-order and duplicated stamps; saturation
 (samples pinned at the extreme value of an axis, repeated); static segments with their gyro bias,
 noise level and the noise density it implies (``std / sqrt(rate)``, to compare with the configured
-white-noise density; vibration inflates it); gravity magnitude on the longest static segment. With
-ground truth: preintegration consistency, the mean normalised estimation error squared over windows,
+white-noise density; vibration inflates it); gravity magnitude on the longest static segment (without one,
+fitted to the ground-truth motion when the ground truth has biases, ``gravity_magnitude_fit``). With ground
+truth: preintegration consistency, the mean normalised estimation error squared over windows,
 ``NEES = r^T Cov^-1 r`` of the inertial residual (rotation, velocity, position; 9 dof) evaluated at
 the ground-truth states, reported as ``mean NEES / dof`` (1 for a consistent noise model). Biases come
 from the ground truth when it has them, else one constant bias fitted to all windows by Gauss-Newton.
@@ -19,7 +20,7 @@ import torch
 
 from vigs_core.geometry import quat_to_matrix, se3_from_rt
 from vigs_core.imu.preintegration import preintegrate, stack_preintegrated
-from vigs_core.imu.residual import inertial_residual
+from vigs_core.imu.residual import GRAVITY as GRAVITY_MAGNITUDE, inertial_residual
 from vigs_core.imu.samples import find_stream_defects, sanitize_samples
 from vigs_core.imu.static_init import StaticDetectorConfig, detect_static_segments, static_initialize
 from vigs_core.types import ImuNoise, ImuSamples, Trajectory
@@ -101,9 +102,9 @@ def preintegration_consistency(
         bias_source = "fitted constant"
     W = torch.linalg.inv(pre.cov[:, :9, :9])
 
-    def evaluate(b):
+    def evaluate(b, gravity=GRAVITY_MAGNITUDE, jacobians=True):
         return inertial_residual(pre, T[i], vel[i], b, T[j], vel[j], b, torch.eye(3, **f), torch.zeros((), **f),
-                                 eye4)
+                                 eye4, gravity, jacobians=jacobians)
 
     res = evaluate(b_i)
     if bias_source == "fitted constant":
@@ -116,6 +117,15 @@ def preintegration_consistency(
             b_i = b.expand(len(i), 6)
             res = evaluate(b_i)
     r = res.residual[:, :9]
+    # with the ground truth's biases: the gravity magnitude that best explains the ground-truth motion (weighted
+    # least squares; the residual is affine in it, so one step from a finite difference is exact up to rounding).
+    # A fitted constant bias absorbs it (an accelerometer bias along a mostly level body's z is gravity).
+    gravity_fit = None
+    if bias_source == "ground truth":
+        step = 1e-3
+        d = (evaluate(b_i, GRAVITY_MAGNITUDE + step, False).residual[:, :9] - r) / step
+        gravity_fit = GRAVITY_MAGNITUDE - float((d[:, None, :] @ W @ r[:, :, None]).sum()
+                                                / (d[:, None, :] @ W @ d[:, :, None]).sum())
     nees = (r[:, None, :] @ W @ r[:, :, None])[:, 0, 0]
     parts = {}
     for name, sl in (("rotation", slice(0, 3)), ("velocity", slice(3, 6)), ("position", slice(6, 9))):
@@ -130,6 +140,7 @@ def preintegration_consistency(
         "median_nees_per_dof": float((nees / 9).median()),
         "per_block_nees_per_dof": parts,
         "bias_source": bias_source,
+        "gravity_magnitude_fit": gravity_fit,
         "bias_gyro": b_i[0, :3].tolist(),
         "bias_acc": b_i[0, 3:].tolist(),
     }
@@ -205,9 +216,13 @@ def check_imu(
     report["static_segments"] = static
     longest = max(static, key=lambda e: e["duration_s"]) if static else None
     report["gravity_magnitude"] = None if longest is None else longest["gravity_magnitude"]
+    report["gravity_source"] = None if longest is None else "longest static segment"
     if gt is not None:
-        report["preintegration_consistency"] = preintegration_consistency(
-            clean, gt, noise or ImuNoise(), cfg.nees_window_s, cfg.nees_max_windows)
+        c = preintegration_consistency(clean, gt, noise or ImuNoise(), cfg.nees_window_s, cfg.nees_max_windows)
+        report["preintegration_consistency"] = c
+        if longest is None and c["gravity_magnitude_fit"] is not None:
+            report["gravity_magnitude"] = c["gravity_magnitude_fit"]
+            report["gravity_source"] = "fitted to the ground-truth motion and biases"
     return report
 
 
@@ -233,7 +248,7 @@ def format_report(report: dict) -> str:
             f"gyro noise density {s['implied_gyro_noise_density']:.2e}{ratio}"
         )
     if report["gravity_magnitude"] is not None:
-        lines.append(f"gravity          {report['gravity_magnitude']:.4f} m/s^2 (longest static segment)")
+        lines.append(f"gravity          {report['gravity_magnitude']:.4f} m/s^2 ({report['gravity_source']})")
     c = report.get("preintegration_consistency")
     if c is not None:
         parts = ", ".join(f"{k} {v:.2f}" for k, v in c["per_block_nees_per_dof"].items())
