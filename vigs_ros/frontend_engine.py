@@ -84,7 +84,6 @@ class FrontendEngine:
         self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
         self._metric = False
         self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
-        self.T_cb = np.linalg.inv(np.asarray(T_bc, dtype=np.float64))
 
     @property
     def inertial(self) -> bool:
@@ -191,7 +190,7 @@ class FrontendEngine:
         twist = self.odometry.frame_twist(t_ns) if self.inertial else None
         if twist is None:
             return None
-        R_wb = T_wc[:3, :3] @ self.T_cb[:3, :3]
+        R_wb = T_wc[:3, :3] @ self.odometry.vio.T_cb[:3, :3].numpy()
         return R_wb.T @ twist[0].numpy(), twist[1].numpy()
 
     def keyframe_state(self, kf_id: int) -> KeyframeState:

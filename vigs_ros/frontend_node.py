@@ -185,6 +185,11 @@ PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop",))
 PARAMS += PIPELINE_PARAMS
 
 
+def diagonal_covariance(stds: list[float]) -> np.ndarray:
+    """(6, 6) covariance with the squared standard deviations ``stds`` on its diagonal."""
+    return np.diag(np.square(np.asarray(stds, dtype=np.float64)))
+
+
 class FrontendNode(VigsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
@@ -508,19 +513,17 @@ class FrontendNode(VigsNode):
         """(6, 6) covariance of /odometry's pose for the estimator's status (parameters ``odometry_*_std``)."""
         p = self.p
         if status in METRIC_STATUSES:
-            std = [p["odometry_position_std"]] * 3 + [p["odometry_rotation_std"]] * 3
-        else:
-            std = [p["odometry_unknown_std"]] * 6
-        return np.diag(np.square(np.asarray(std, dtype=np.float64)))
+            return diagonal_covariance([p["odometry_position_std"]] * 3 + [p["odometry_rotation_std"]] * 3)
+        return diagonal_covariance([p["odometry_unknown_std"]] * 6)
 
     def twist_covariance(self, known: bool) -> np.ndarray:
         """(6, 6) covariance of /odometry's twist (child frame): ``odometry_velocity_std`` and
         ``odometry_angular_velocity_std`` when the frame has a metric twist, else ``odometry_unknown_std`` (the
         twist is then zero and must not be fused)."""
         p = self.p
-        std = ([p["odometry_velocity_std"]] * 3 + [p["odometry_angular_velocity_std"]] * 3 if known
-               else [p["odometry_unknown_std"]] * 6)
-        return np.diag(np.square(np.asarray(std, dtype=np.float64)))
+        if known:
+            return diagonal_covariance([p["odometry_velocity_std"]] * 3 + [p["odometry_angular_velocity_std"]] * 3)
+        return diagonal_covariance([p["odometry_unknown_std"]] * 6)
 
     def report_estimator(self, out) -> None:
         """The estimator's status on /vigs/status: an error while lost (with the failure's reason), a warning

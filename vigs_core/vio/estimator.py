@@ -218,11 +218,11 @@ class VisualInertialEstimator:
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
             return None
-        covered = [self.imu_covers(self.states[i].t_ns, self.states[j].t_ns) for i, j in zip(ids[:-1], ids[1:])]
+        pairs = list(zip(ids[:-1], ids[1:]))
+        covered = [self.imu_covers(self.states[i].t_ns, self.states[j].t_ns) for i, j in pairs]
         if not all(covered) and not (self.metric and any(covered)):
             return None
         joint = self.stage == Stage.JOINT_UNALIGNED
-        pairs = list(zip(ids[:-1], ids[1:]))
         stand_in = pairs[covered.index(True)]   # an interval across a gap is not integrated: weight 0, any stand-in
         pre = self.preintegrations([p if ok else stand_in for p, ok in zip(pairs, covered)])
         prior = _bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std)
