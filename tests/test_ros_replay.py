@@ -150,3 +150,25 @@ def test_replay_cli_errors(tmp_path):
                           "0.05"], capture_output=True, text=True, env=env, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
     assert f"{N_IMU + N_IMG} messages on 2 topics" in out.stdout and "4 ack timeouts" in out.stdout
+
+
+@pytest.mark.parametrize("after_s", [0.3, 4.0])
+def test_an_interrupted_replay_stops_cleanly_during_start_up_and_mid_bag(tmp_path, after_s):
+    """SIGINT while the process is still starting (before its node exists) or while it publishes: exit 0 within
+    seconds, reported as interrupted, no traceback (rclpy's own handlers raced the publishing thread)."""
+    import signal
+    import time
+
+    # the 20 IMU samples again every 0.1 s of bag time: about 10 s of bag played in real time
+    long_msgs = [(topic, typ, t + rep * 100_000_000, msg) for rep in range(100)
+                 for topic, typ, t, msg in small_messages() if topic == "/imu0"]
+    bag = write_ros2_bag(tmp_path / "bag", sorted(long_msgs, key=lambda m: m[2]))
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "replay", str(bag)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=isolated_env())
+    time.sleep(after_s)
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert time.monotonic() - t0 < 5.0
+    assert "[replay] interrupted" in out and "Traceback" not in out, out
