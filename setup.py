@@ -29,6 +29,7 @@ setup(
             "vigs_frontend = vigs_ros.frontend_node:main",
             "vigs_mapper = vigs_ros.mapper_node:main",
             "vigs_loop_detector = vigs_ros.loop_detector_node:main",
+            "vigs_viewer = vigs_ros.viewer_node:main",
         ],
     },
 )

@@ -17,6 +17,7 @@ SUBCOMMANDS = {
     "replay": ("vigs_cli.replay_cmd", "publish a ROS 2 (MCAP/sqlite3) or ROS 1 bag with /clock at a rate or --fast"),
     "imu-check": ("vigs_cli.imu_check_cmd", "IMU stream health: rate, jitter, gaps, static bias/noise, NEES vs ground truth"),
     "sim": ("vigs_cli.sim_cmd", "render a visual-inertial sequence (images, depth, IMU, ground truth) to ASL / ROS 2 bag"),
+    "view": ("vigs_cli.view_cmd", "log a running graph's topics to rerun: a live viewer, a remote one, or an .rrd file"),
     "run": ("vigs_cli.run_cmd", "dense monocular odometry on an EuRoC ASL folder or a ROS bag: trajectories + report"),
 }
 

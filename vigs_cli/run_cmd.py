@@ -21,6 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "point of the second column if any, and skip the rest: the frontend node's "
                              "frames_processed.txt replays a live run with its skips and interleaving")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    viz = parser.add_mutually_exclusive_group()
+    viz.add_argument("--viz", nargs="?", const="spawn", metavar="URL",
+                     help="show the run live in rerun: start a local viewer, or stream to the running viewer at URL "
+                          "(e.g. rerun+http://laptop:9876/proxy)")
+    viz.add_argument("--rrd", metavar="FILE", help="record the run to a rerun file (open it with `rerun FILE`)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"vigs run: bad --frames-from: {err}", file=sys.stderr)
             return 2
     try:
-        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress, schedule=schedule)
+        report = run_pipeline(args.input, cfg, args.out, progress=not args.no_progress, schedule=schedule,
+                              viz=args.viz or args.rrd)
     except (FileNotFoundError, ValueError) as err:
         print(f"vigs run: {err}", file=sys.stderr)
         return 2

@@ -17,6 +17,7 @@ from vigs_core.frontend.odometry import OdometryConfig
 from vigs_core.loop.config import LoopConfig
 from vigs_core.system.mapping import MappingConfig
 from vigs_core.vio.config import VioConfig
+from vigs_core.viz.rerun_log import RerunConfig
 
 NODE_NAME = "frontend"
 
@@ -45,6 +46,7 @@ class PipelineConfig:
         mapping: the Gaussian mapper (:class:`vigs_core.system.mapping.MappingConfig`); with ``mapping.enabled``
             (default) keyframes are mapped on a worker thread and DIR/map.ply is written. It costs CPU (about
             1-2 s per keyframe on a CPU core at the defaults); ``mapping: {enabled: false}`` for odometry only.
+        rerun: what ``vigs run --viz`` / ``--rrd`` log how often (:class:`vigs_core.viz.rerun_log.RerunConfig`).
     """
 
     width: int = 376
@@ -60,6 +62,7 @@ class PipelineConfig:
     imu: VioConfig = field(default_factory=VioConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    rerun: RerunConfig = field(default_factory=RerunConfig)
 
 
 class ParameterTypeError(ValueError):

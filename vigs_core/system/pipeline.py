@@ -272,9 +272,35 @@ class Checkpoints:
             mapping.save(self.out / "map.ply")
 
 
+def _finish_recording(recorder, odo, seq: InputSequence, poses: dict, report: dict, mapping) -> None:
+    """The run's end in the rerun recording: final trajectory and keyframes, loop edges, the map, and the ground
+    truth (camera positions) mapped into the estimate's world by the inverse of the evaluation's alignment
+    (SE(3) when metric, else Sim(3))."""
+    from vigs_core.eval.alignment import align
+
+    t_ns, T_WC = poses["trajectory_cam"]
+    tk, T_WB_kf = poses["keyframes"]
+    gt = None
+    if seq.groundtruth is not None and len(t_ns) >= 3:
+        ref, inside = groundtruth_at(seq.groundtruth, t_ns)
+        if len(ref) >= 3:
+            gt_cam = (ref.matrices() @ seq.T_BS)[:, :3, 3]
+            metric = report.get("vio", {}).get("metric", False)
+            try:
+                al = align(gt_cam, T_WC[inside, :3, 3], "se3" if metric else "sim3")
+                gt = (gt_cam - al.translation) @ al.rotation / al.scale
+            except ValueError:   # e.g. a platform held still: no alignment
+                gt = None
+    pairs = [tuple(p) for p in report.get("loop", {}).get("accepted_pairs", [])]
+    recorder.finish(T_WC, sorted(odo.keyframes), T_WB_kf @ seq.T_BS, pairs, gt)
+    if mapping is not None:
+        recorder.map(mapping.mapper.snapshot)
+    recorder.close()
+
+
 def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, out_dir: str | Path | None = None,
                  progress: bool = True, sequence: InputSequence | None = None,
-                 schedule: dict[int, int | None] | None = None) -> dict:
+                 schedule: dict[int, int | None] | None = None, viz: str | Path | None = None) -> dict:
     """Run the dense odometry over a recording and write the outputs (module docstring).
 
     Args:
@@ -287,6 +313,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             frames), and skip the rest, as a live run that fell behind did (the frontend node's
             ``frames_processed.txt``, :mod:`vigs_core.io.frame_schedule`): the same input with the same skips
             and interleaving gives the same trajectory.
+        viz: log the run to rerun (:class:`~vigs_core.viz.rerun_log.RerunRecorder` target: ``"spawn"``, a
+            viewer's URL or an ``.rrd`` path), with ``config.rerun``; None logs nothing.
     Returns:
         The report (also written as ``report.json``).
     """
@@ -299,6 +327,11 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     mapping = OnlineMapping(cfg.mapping, odo, cam) if cfg.mapping.enabled else None
     loop = LoopClosureDriver(cfg.loop, odo, mapper=mapping and mapping.mapper,
                              on_update=mapping and mapping.on_correction) if cfg.loop.enabled else None
+    recorder = None
+    if viz is not None:
+        from vigs_core.viz.rerun_log import RerunRecorder
+
+        recorder = RerunRecorder(viz, cam.width, cam.height, (cam.fx, cam.fy, cam.cx, cam.cy), cfg.rerun)
     total = seq.frame_count // cfg.frame_stride
     if cfg.max_frames is not None:
         total = min(total, cfg.max_frames)
@@ -349,6 +382,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         stream.add_prepared(t_ns, image)
         if image is None:   # between strided frames
             return False
+        if recorder is not None:
+            recorder.frame(odo, t_ns, image)
         n += 1
         if bar is not None:
             bar.update(1)
@@ -380,8 +415,12 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                 continue
             if mapping is not None:
                 mapping.step(image)
-            if loop is not None:
-                loop.step()
+            corrected = loop is not None and loop.step() is not None
+            if recorder is not None:
+                if corrected:
+                    recorder.loop_corrected(odo)
+                if mapping is not None:
+                    recorder.map(mapping.mapper.snapshot, None if corrected else time.monotonic())
             checkpoints.step(odo, seq.T_BS, n, mapping)
             if bar is not None and n % 20 == 0:
                 bar.set_postfix(kf=len(odo.keyframes), init=odo.initialized)
@@ -439,6 +478,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         if metric and seq.groundtruth is not None and len(t_ns):
             report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
     report["total_s"] = round(time.perf_counter() - t_start, 3)
+    if recorder is not None:
+        _finish_recording(recorder, odo, seq, poses, report, mapping)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
