@@ -180,8 +180,9 @@ PARAMS = [
     ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))"),
     ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz)"),
 ]
-# the in-process pipeline's settings (vigs_core.system.PipelineConfig), minus what belongs to other nodes
-PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop",))
+# the in-process pipeline's settings (vigs_core.system.PipelineConfig), minus what belongs to other nodes (the
+# loop detector's, and the viewer node's rerun settings)
+PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop", "rerun"))
 PARAMS += PIPELINE_PARAMS
 
 

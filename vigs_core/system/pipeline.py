@@ -279,7 +279,7 @@ def _finish_recording(recorder, odo, seq: InputSequence, poses: dict, report: di
     from vigs_core.eval.alignment import align
 
     t_ns, T_WC = poses["trajectory_cam"]
-    tk, T_WB_kf = poses["keyframes"]
+    _, T_WB_kf = poses["keyframes"]
     gt = None
     if seq.groundtruth is not None and len(t_ns) >= 3:
         ref, inside = groundtruth_at(seq.groundtruth, t_ns)
