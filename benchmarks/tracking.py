@@ -10,13 +10,15 @@ that commit, and every ``--variant NAME=FILE`` of this checkout with extra param
   ``getrusage(RUSAGE_CHILDREN)``: the figure the 25 ms target is about;
 * ``flow`` / ``ba`` / ``track`` / ``vio`` ms: the run's per-stage wall time per frame (report.json ``timings_s``:
   DIS flows, BA, pose-only tracking, the inertial initialisation);
-* ``ate_se3`` / ``ate_sim3`` cm and ``rec10`` (recall@10cm, SE(3)) of the body trajectory.
+* ``ate_se3`` / ``ate_sim3`` cm and ``rec10`` (recall@10cm, SE(3)) of the body trajectory;
+* ``rrd_mb``: the size of the rerun recording of the ``--rrd`` version (``head+rrd``: this checkout with
+  ``vigs run --rrd``), 0 for the others.
 
 Runs of one sequence alternate between the versions (``--repeat`` rounds), so old and new share the machine's
 load; the 1-minute load average is printed before and after. Time it on a quiet machine.
 
     vigs bench tracking [--sequences V1_01_easy V2_01_easy MH_03_medium] [--base REV] [--variant NAME=FILE]
-                        [--repeat 1] [--bags out/sim] [--keep DIR] [--json OUT]
+                        [--rrd] [--repeat 1] [--bags out/sim] [--keep DIR] [--json OUT]
 """
 from __future__ import annotations
 
@@ -48,17 +50,20 @@ def params_file(folder: Path, name: str, extra: Path | None) -> Path:
     return path
 
 
-def run_once(code: Path, bag: Path, params: Path, out: Path) -> dict:
-    """One ``vigs run`` of ``code`` (a checkout); the report with the CPU time of the run and its children."""
+def run_once(code: Path, bag: Path, params: Path, out: Path, rrd: bool = False) -> dict:
+    """One ``vigs run`` of ``code`` (a checkout), recording to ``out/run.rrd`` with ``rrd``; the report with the
+    CPU time of the run and its children."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     env = {**os.environ, "PYTHONPATH": str(code)}
-    proc = subprocess.run([sys.executable, "-c", RUN, "run", str(bag), "--params", str(params), "--out", str(out)],
-                          cwd=code, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    extra = ["--rrd", str(out / "run.rrd")] if rrd else []
+    proc = subprocess.run([sys.executable, "-c", RUN, "run", str(bag), "--params", str(params), "--out", str(out),
+                           *extra], cwd=code, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise RuntimeError(f"vigs run in {code} on {bag} exited {proc.returncode}: {proc.stderr[-2000:]}")
     report = json.loads((out / "report.json").read_text())
     report["cpu_s"] = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    report["rrd_mb"] = round((out / "run.rrd").stat().st_size / 1e6, 1) if rrd else 0.0
     return report
 
 
@@ -71,7 +76,7 @@ def row(sequence: str, label: str, report: dict) -> dict:
     out.update({f"{k}_ms": round(1000 * timings.get(v, 0.0) / n, 1) for k, v in STAGES.items()})
     out.update({"ate_se3": round(100 * se3.get("ate_rmse", float("nan")), 2),
                 "ate_sim3": round(100 * sim3.get("ate_rmse", float("nan")), 2),
-                "rec10": round(se3.get("recall@0.1", float("nan")), 3)})
+                "rec10": round(se3.get("recall@0.1", float("nan")), 3), "rrd_mb": report["rrd_mb"]})
     return out
 
 
@@ -90,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--base", help="git commit or tag to compare with (checked out in a temporary worktree)")
     p.add_argument("--variant", action="append", default=[], metavar="NAME=FILE",
                    help="this checkout with these extra parameters (vigs run --params layout)")
+    p.add_argument("--rrd", action="store_true",
+                   help="also this checkout recording to a rerun file (vigs run --rrd): what logging costs")
     p.add_argument("--repeat", type=int, default=1, help="rounds over the versions per sequence")
     p.add_argument("--keep", help="keep the run folders here")
     p.add_argument("--json", help="write the rows here")
@@ -104,23 +111,26 @@ def main(argv: list[str] | None = None) -> int:
                 "--no-depth --bag out/sim/SEQ_bag")
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="vigs_bench_tracking_"))
     work.mkdir(parents=True, exist_ok=True)
-    versions = [("head", ROOT, params_file(work, "head", None))]
-    versions += [(name, ROOT, params_file(work, name, Path(file))) for name, file in variants]
+    versions = [("head", ROOT, params_file(work, "head", None), False)]
+    versions += [(name, ROOT, params_file(work, name, Path(file)), False) for name, file in variants]
+    if args.rrd:
+        versions.append(("head+rrd", ROOT, versions[0][2], True))
     worktree = None
     try:
         if args.base:
             worktree = work / "base_checkout"
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(worktree), args.base],
                            check=True, capture_output=True)
-            versions.insert(0, (f"base {args.base}", worktree, params_file(work, "base", None)))
+            versions.insert(0, (f"base {args.base}", worktree, params_file(work, "base", None), False))
         print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
         rows = []
         for seq, bag in bags.items():
             for rnd in range(args.repeat):
-                for label, code, params in versions:
+                for label, code, params, rrd in versions:
                     out = work / f"{seq}_{label.split()[0]}_{rnd}"
                     shutil.rmtree(out, ignore_errors=True)
-                    rows.append(row(seq, label, run_once(code, bag, params, out)))
+                    out.mkdir(parents=True)
+                    rows.append(row(seq, label, run_once(code, bag, params, out, rrd)))
                     print(json.dumps(rows[-1]), flush=True)
         print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         print_table(rows)

@@ -89,6 +89,8 @@ class ViewerNode(VigsNode):
             for t_ns, T in self.pending_odometry:
                 self._log_odometry(t_ns, T)
             self.pending_odometry.clear()
+            for name, (level, text) in self.statuses.items():   # the statuses heard before
+                self.recorder.event(f"{name}: {LEVELS.get(level, level)} {text}")
         self.received["keyframes"] += 1
         self.recorder.set_frame(self.received["odometry"], kf.t_ns)
         self.recorder.camera(kf.T_wc, grey, trajectory=False)
