@@ -15,13 +15,15 @@ from vigs_core.eval.metrics import (
     rpe_pairs,
     translation_errors,
 )
-from vigs_core.eval.report import evaluate_trajectory, recall_key
+from vigs_core.eval.report import AlignedEstimate, align_estimate, evaluate_trajectory, recall_key
 
 __all__ = [
     "ALIGN_MODES",
+    "AlignedEstimate",
     "Alignment",
     "RPE_UNITS",
     "align",
+    "align_estimate",
     "associate",
     "ate",
     "error_statistics",

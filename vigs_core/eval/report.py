@@ -1,19 +1,59 @@
 """One call that evaluates an estimated trajectory against ground truth: associate, align, measure."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
+from vigs_core.eval.alignment import Alignment
 from vigs_core.eval.alignment import align as fit_alignment
 from vigs_core.eval.association import associate
-from vigs_core.eval.metrics import ate, recall, rpe, translation_errors
+from vigs_core.eval.metrics import error_statistics, recall, rpe, translation_errors
 from vigs_core.types import Trajectory
 
 
 def recall_key(threshold: float) -> str:
     """Result key of one recall threshold, e.g. ``0.05 -> "recall@0.05"``."""
     return f"recall@{threshold:g}"
+
+
+@dataclass(frozen=True)
+class AlignedEstimate:
+    """An estimate paired with the ground truth by stamp and aligned onto it (:func:`align_estimate`).
+
+    Attributes:
+        i_gt: (K,) int64 index of each pair's ground-truth pose, pairs in time order.
+        i_est: (K,) int64 index of each pair's estimated pose.
+        alignment: the fitted alignment, mapping the estimate into the ground-truth frame.
+        errors: (K,) translation errors (m) of the aligned estimate positions (the ATE per pair).
+    """
+
+    i_gt: np.ndarray
+    i_est: np.ndarray
+    alignment: Alignment
+    errors: np.ndarray
+
+
+def align_estimate(gt: Trajectory, est: Trajectory, align: str = "sim3", max_diff_s: float = 0.02) -> AlignedEstimate:
+    """Associate ``est`` with ``gt`` within ``max_diff_s``, fit the alignment ``align`` of the associated estimate
+    positions onto the ground truth and measure each pair's translation error (the first steps of
+    :func:`evaluate_trajectory`, which raises the same errors)."""
+    if max_diff_s < 0:
+        raise ValueError(f"evaluate_trajectory: max_diff_s must be >= 0, got {max_diff_s}")
+    i_gt, i_est = associate(gt.t_ns, est.t_ns, int(round(max_diff_s * 1e9)))
+    if len(i_gt) == 0:
+        raise ValueError(
+            f"evaluate_trajectory: no estimate stamp lies within {max_diff_s} s of a ground-truth stamp "
+            f"(ground truth {gt.t_s[0]:.3f}..{gt.t_s[-1]:.3f} s, estimate {est.t_s[0]:.3f}..{est.t_s[-1]:.3f} s); "
+            "expected overlapping stamps on the same clock"
+        )
+    # Process pairs in time order (association orders them by the sparser sequence's stamps).
+    order = np.argsort(gt.t_ns[i_gt], kind="stable")
+    i_gt, i_est = i_gt[order], i_est[order]
+    alignment = fit_alignment(gt.position[i_gt], est.position[i_est], align)
+    errors = translation_errors(gt.position[i_gt], alignment.apply_positions(est.position[i_est]))
+    return AlignedEstimate(i_gt, i_est, alignment, errors)
 
 
 def evaluate_trajectory(
@@ -49,26 +89,13 @@ def evaluate_trajectory(
         ValueError: too few associated poses for the alignment (the message says how many were found
             and suggests ``max_diff_s``), or an unknown mode.
     """
-    if max_diff_s < 0:
-        raise ValueError(f"evaluate_trajectory: max_diff_s must be >= 0, got {max_diff_s}")
-    i_gt, i_est = associate(gt.t_ns, est.t_ns, int(round(max_diff_s * 1e9)))
-    if len(i_gt) == 0:
-        raise ValueError(
-            f"evaluate_trajectory: no estimate stamp lies within {max_diff_s} s of a ground-truth stamp "
-            f"(ground truth {gt.t_s[0]:.3f}..{gt.t_s[-1]:.3f} s, estimate {est.t_s[0]:.3f}..{est.t_s[-1]:.3f} s); "
-            "expected overlapping stamps on the same clock"
-        )
-    # Process pairs in time order (association orders them by the sparser sequence's stamps).
-    order = np.argsort(gt.t_ns[i_gt], kind="stable")
-    i_gt, i_est = i_gt[order], i_est[order]
-    alignment = fit_alignment(gt.position[i_gt], est.position[i_est], align)
-    est_aligned = alignment.apply_positions(est.position[i_est])
-    errors = translation_errors(gt.position[i_gt], est_aligned)
+    pairs = align_estimate(gt, est, align, max_diff_s)
+    i_gt, i_est, alignment = pairs.i_gt, pairs.i_est, pairs.alignment
 
     result: dict = {"align": align, "n_gt": len(gt), "n_est": len(est), "n_matched": int(len(i_gt))}
-    result.update({f"ate_{name}": value for name, value in ate(gt.position[i_gt], est_aligned).items()})
+    result.update({f"ate_{name}": value for name, value in error_statistics(pairs.errors).items()})
     result["scale"] = float(alignment.scale)
-    for threshold, fraction in recall(errors, i_gt, len(gt), thresholds).items():
+    for threshold, fraction in recall(pairs.errors, i_gt, len(gt), thresholds).items():
         result[recall_key(threshold)] = fraction
     result["alignment"] = alignment.matrix().tolist()
     if rpe_delta is not None:
