@@ -3,7 +3,8 @@
 #
 # The venv is refreshed when it is missing or stale: the stamp .venv/.vigs-setup holds a hash of the
 # requirement files, setup.py, package.xml, the interface packages and the set-up scripts; when it
-# matches, set-up does nothing, so re-running is fast.
+# matches, set-up does nothing, so re-running is fast. Chromium (an OS package the tests use) is installed with
+# apt-get when it is missing, whatever the stamp.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
@@ -12,6 +13,21 @@ PY=${PYTHON:-python3}
 STAMP="$VENV/.vigs-setup"
 hash=$(cat requirements/*.txt setup.py package.xml scripts/setup.sh scripts/build_interfaces.sh \
   tools/splat_transform/package*.json $(find interfaces -type f | sort) | sha256sum | cut -d' ' -f1)
+
+# Chromium from the OS packages: the tests open report.html in it, headless. A system package, not in the venv, so
+# looked for on every run (cheap) rather than through the stamp, and installed only when missing.
+if ! command -v chromium >/dev/null 2>&1; then
+  as_root=()
+  [[ $(id -u) -eq 0 ]] || as_root=(sudo -n)
+  if [[ $(id -u) -ne 0 ]] && ! sudo -n true 2>/dev/null; then
+    echo "[setup] warning: chromium is missing and installing OS packages needs root: run" \
+      "'sudo apt-get install chromium' (tests/test_report_html.py opens report.html in it)" >&2
+  else
+    echo "[setup] chromium is missing: installing it from the OS packages (apt-get; the tests open report.html in it)"
+    "${as_root[@]}" apt-get update -qq
+    "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium
+  fi
+fi
 
 if [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$hash" ]]; then
   exit 0

@@ -289,6 +289,7 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["interrupted"] == signal.Signals(signum).name and 100 <= report["frames"] < 441
     assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 0
+    assert 'src="report_figures/trajectory.png"' in (tmp_path / "report.html").read_text()   # plotted too
     if mapping:
         from vigs_core.mapping.ply import read_ply_vertices
 

@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     acc = report.get("accuracy", {})
     summary.update({k: acc[k] for k in ("ate_rmse", "recall@0.1", "scale") if k in acc})
     print(json.dumps(summary))
-    print(f"wrote {args.out}/trajectory.txt, trajectory_cam.txt, odometry.txt, keyframes.txt, frame_status.txt, report.json")
+    print(f"wrote {args.out}/trajectory.txt, trajectory_cam.txt, odometry.txt, keyframes.txt, frame_status.txt, "
+          "report.json, report.html")
     # interrupted: the outputs are written, the exit code is the shell's for the signal (128 + its number)
     return {"SIGINT": 130, "SIGTERM": 143}.get(report.get("interrupted"), 0)

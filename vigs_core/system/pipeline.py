@@ -14,6 +14,9 @@ Outputs in the output folder:
 * ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and the loop-closure
   process as ``peak_rss_mb_worker_process``), accuracy (Sim(3)-aligned ATE and recall against the ground truth
   sampled at the frame times).
+* ``report.html``: figures (``report_figures/``) of the trajectory against the ground truth, the error over time,
+  scale and biases, time per stage, keyframes and loops (:mod:`vigs_core.eval.report_html`; written last, a
+  failure to plot is a warning).
 
 A run that is not metric (vision only, or the IMU never initialised) has an arbitrary scale s, but
 ``T_WB = T_WC inv(T_BS)`` applies the metric camera-IMU lever arm: the body positions are off by
@@ -158,6 +161,27 @@ def peak_rss_mb(who: int = resource.RUSAGE_SELF) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
 
 
+def _reference(gt: Trajectory, frame_t_ns: np.ndarray, T_BX: np.ndarray | None = None) -> Trajectory:
+    """What a run is scored against: the ground truth at the input frame times inside its span, as poses of frame X
+    (``T_WB_gt T_BX``; the body when ``T_BX`` is None)."""
+    ref, _ = groundtruth_at(gt, frame_t_ns)
+    return ref if T_BX is None or not len(ref) else poses_to_trajectory(ref.t_ns, ref.matrices() @ T_BX)
+
+
+def _write_html_report(out: Path, seq: InputSequence, frame_t_ns: np.ndarray, metric: bool) -> None:
+    """``report.html`` beside report.json (:mod:`vigs_core.eval.report_html`): the estimate plotted against the
+    reference it was scored on (body poses, camera poses when not metric). Written last, and a failure to plot is
+    a warning: the run's other outputs are written already."""
+    try:
+        from vigs_core.eval.report_html import write_run_report
+
+        T_BX = None if metric else seq.T_BS
+        ref = None if seq.groundtruth is None else _reference(seq.groundtruth, frame_t_ns, T_BX)
+        write_run_report(out, ref, "trajectory.txt" if metric else "trajectory_cam.txt")
+    except Exception as err:   # noqa: BLE001 - plotting must not cost the run its outputs or its exit status
+        print(f"vigs run: report.html not written: {type(err).__name__}: {err}", file=sys.stderr)
+
+
 def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np.ndarray,
               align: str = "sim3", T_BX: np.ndarray | None = None) -> dict:
     """Sim(3)-aligned (or ``align``-aligned) ATE and recall of the posed frames against the ground truth sampled at
@@ -167,11 +191,9 @@ def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np
     by ``T_WB_gt T_BX`` first (``T_BX = T_BS`` scores camera poses)."""
     from vigs_core.eval import evaluate_trajectory
 
-    ref, _ = groundtruth_at(gt, frame_t_ns)
+    ref = _reference(gt, frame_t_ns, T_BX)
     if len(ref) < 3 or len(t_ns) < 3:
         return {"error": "fewer than 3 frames inside the ground truth's time span or posed"}
-    if T_BX is not None:
-        ref = poses_to_trajectory(ref.t_ns, ref.matrices() @ T_BX)
     try:
         out = evaluate_trajectory(ref, poses_to_trajectory(t_ns, T_WX), align=align, thresholds=(0.05, 0.10),
                                   max_diff_s=1e-3)
@@ -461,8 +483,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             "gaussians": len(mapping.mapper.map), "keyframes_mapped": mapping.mapper.stats.keyframes,
             "interrupted": True}
     metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
+    frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
     if seq.groundtruth is not None and len(t_ns):
-        frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
         if metric:
             report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
             report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
@@ -490,6 +512,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         if mapping is not None:
             mapping.save(out / "map.ply")
         _replace_atomically(out / "report.json", lambda path: path.write_text(json.dumps(report, indent=2)))
+        _write_html_report(out, seq, frame_t, metric)
     if failure is not None:
         raise failure
     return report
