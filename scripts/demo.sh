@@ -6,7 +6,8 @@
 # consumes (--fast: one image per acknowledged frame, so no frame is dropped), and shuts the graph down at
 # the end. At shutdown the frontend writes the final trajectory of every frame (TUM body poses, like
 # `vigs run`'s trajectory.txt), the causal odometry, the keyframes and a frame count report; the mapper
-# writes the Gaussian map (3DGS PLY). Then `vigs eval` scores the trajectory against the ground truth.
+# writes the Gaussian map (3DGS PLY). Then `vigs eval` scores the trajectory against the ground truth and plots it
+# (report.html: the graph writes no report.json, so the report has the trajectory, error and keyframe figures).
 #
 # Environment: VIGS_DEMO_OUT (output folder, default out/demo), ROS_DOMAIN_ID (default: 10 + pid % 91).
 set -euo pipefail
@@ -67,7 +68,8 @@ EOF
 echo
 echo "== accuracy of $OUT/trajectory.txt against $GT"
 echo "-- Sim(3) alignment (monocular scale free)"
-"$VIGS" eval "$GT" "$OUT/trajectory.txt" --align sim3 --recall 0.05 0.10 | tee "$OUT/accuracy_sim3.txt"
+"$VIGS" eval "$GT" "$OUT/trajectory.txt" --align sim3 --recall 0.05 0.10 --html "$OUT/report.html" \
+    | tee "$OUT/accuracy_sim3.txt"
 echo "-- SE(3) alignment (metric: no scale correction)"
 "$VIGS" eval "$GT" "$OUT/trajectory.txt" --align se3 --recall 0.05 0.10 | tee "$OUT/accuracy_se3.txt"
 
@@ -80,3 +82,5 @@ echo "  map.ply, map.json    Gaussian map (3DGS PLY layout) and its sidecar"
 echo "  frontend_report.json frame counts (tracked, skipped), IMU initialisation, latency, node counters"
 echo "  frames_processed.txt stamps of the tracked frames (vigs run --frames-from replays the run)"
 echo "  accuracy_*.txt       the tables above; launch.log the graph's log"
+echo "  report.html          the trajectory against the ground truth, its error over time, the keyframes (plots in"
+echo "                       report_figures/; open it in a browser)"

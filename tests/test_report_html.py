@@ -1,11 +1,12 @@
 """The plotted run report (vigs_core.eval.report_html): every figure the page names exists and is drawn, figures
-that need missing data are left out saying why, and the page loads in a real headless Chromium (every image
-decoded, a non-blank screenshot). Synthetic run folders keep it to seconds."""
+that need missing data are left out saying why, `vigs eval --html` overlays several runs, and the page loads in a
+real headless Chromium (every image decoded, a non-blank screenshot). Synthetic run folders keep it to seconds."""
 import html
 import json
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -124,6 +125,42 @@ def test_figures_without_their_data_are_left_out_saying_why(tmp_path):
     reasons = omitted(page)
     assert any("no keyframes.txt beside the estimate" in r for r in reasons)
     assert any("Time per frame by stage: left out: no report.json" in r for r in reasons)
+
+
+def test_vigs_eval_html_overlays_several_runs_and_keeps_the_single_run_output(tmp_path):
+    gt = groundtruth()
+    gt_file = tmp_path / "gt.txt"
+    write_tum(gt_file, gt)
+    a = write_run(tmp_path / "a", gt, bump_m=0.02) / "trajectory.txt"
+    b = write_run(tmp_path / "b", gt, vio=False, loops=[[1, 12]], bump_m=0.2) / "trajectory.txt"
+    eval_cmd = [sys.executable, "-m", "vigs_cli.main", "eval", str(gt_file)]
+
+    single = subprocess.run(eval_cmd + [str(a)], capture_output=True, text=True, timeout=120)
+    with_html = subprocess.run(eval_cmd + [str(a), "--html", str(tmp_path / "one.html")], capture_output=True,
+                               text=True, timeout=120)
+    assert single.returncode == with_html.returncode == 0, with_html.stderr
+    assert with_html.stdout == single.stdout and single.stdout.startswith("alignment ")   # output as it was
+    assert {f.name for f in page_figures(tmp_path / "one.html")} == ALL_FIGURES
+
+    both = subprocess.run(eval_cmd + [str(a), str(b), "--html", str(tmp_path / "cmp.html"), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert both.returncode == 0, both.stderr
+    results = json.loads(both.stdout)
+    assert list(results) == [str(a), str(b)] and results[str(b)]["ate_rmse"] > 5 * results[str(a)]["ate_rmse"]
+    page = tmp_path / "cmp.html"
+    assert f"wrote {page}" in both.stderr
+    assert {f.name for f in page_figures(page)} == ALL_FIGURES   # b has no VIO state: a's is drawn
+    text = page.read_text()
+    rows = re.findall(r"<tr><td>([^<]*)</td>", text)
+    assert rows == [str(a), str(b)]
+    for path in (a, b):
+        assert f"<td>{results[str(path)]['ate_rmse']:.4g}</td>" in text
+    assert "one colour per run" in text and f"{b}: 1 loop closures accepted" in text
+    for figure in page_figures(page):
+        assert_drawn_png(figure)
+
+    tables = subprocess.run(eval_cmd + [str(a), str(b)], capture_output=True, text=True, timeout=120)
+    assert tables.stdout.startswith(f"== {a}\n{single.stdout}\n== {b}\nalignment "), tables.stdout
 
 
 def chromium() -> str:
