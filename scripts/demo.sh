@@ -7,7 +7,7 @@
 # the end. At shutdown the frontend writes the final trajectory of every frame (TUM body poses, like
 # `vigs run`'s trajectory.txt), the causal odometry, the keyframes and a frame count report; the mapper
 # writes the Gaussian map (3DGS PLY). Then `vigs eval` scores the trajectory against the ground truth and plots it
-# (report.html: the graph writes no report.json, so the report has the trajectory, error and keyframe figures).
+# (report.html, with the frontend node's frontend_report.json beside the trajectory: timings, scale and biases).
 #
 # Environment: VIGS_DEMO_OUT (output folder, default out/demo), ROS_DOMAIN_ID (default: 10 + pid % 91).
 set -euo pipefail

@@ -234,3 +234,13 @@ def test_a_plotting_failure_in_vigs_run_is_a_warning(tmp_path, monkeypatch, caps
     _write_html_report(run, SimpleNamespace(groundtruth=None, T_BS=np.eye(4)), np.zeros(0, np.int64), True)
     assert "vigs run: report.html not written: RuntimeError: no fonts" in capsys.readouterr().err
     assert not (run / "report.html").exists() and (run / "report.json").is_file()
+
+
+def test_a_graph_run_is_plotted_from_the_frontend_nodes_report(tmp_path):
+    """The frontend node writes frontend_report.json (with the same frames, timings_s and vio as report.json): a
+    graph run's folder gets every figure too."""
+    gt = groundtruth()
+    run = write_run(tmp_path / "graph", gt, loops=[[2, 17]])
+    (run / "report.json").rename(run / "frontend_report.json")
+    page = write_run_report(run, gt)
+    assert {f.name for f in page_figures(page)} == ALL_FIGURES and not omitted(page)

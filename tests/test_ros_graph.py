@@ -331,7 +331,8 @@ def test_frontend_camera_yaml_and_saved_outputs(ros_context, sim_bag, tmp_path):
         assert spin_until(executor, lambda: frontend.engine.stream.frames_in == n_frames)
     frontend.close()
     report = json.loads((tmp_path / "out" / "frontend_report.json").read_text())
-    assert report["frames_in"] == report["frames_tracked"] == n_frames
+    assert report["frames_in"] == report["frames_tracked"] == report["frames"] == n_frames
+    assert report["timings_s"]["tracking"] > 0   # what the plotted report reads, as in vigs run's report.json
     traj = read_tum(tmp_path / "out" / "trajectory.txt")
     assert len(traj) == report["frames_posed"] > 0
     assert set(traj.t_ns) <= set(int(t) for t in seq.frame_t_ns)

@@ -621,16 +621,20 @@ class FrontendNode(VigsNode):
 
 def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Path) -> dict:
     """Write the engine's pose outputs as ``vigs run`` does (:func:`vigs_core.system.pipeline.write_pose_outputs`:
-    final frame poses, causal poses, keyframes, frame statuses); returns their counts for the report."""
+    final frame poses, causal poses, keyframes, frame statuses); returns their counts for the report, with what
+    the plotted report reads as in ``vigs run``'s report.json: ``frames`` (tracked), ``timings_s`` per stage and,
+    visual-inertial, ``vio`` (stage, scale history, biases, per-keyframe states)."""
     odo = engine.odometry
     out.mkdir(parents=True, exist_ok=True)
     poses = pose_outputs(odo, T_bc)
     write_pose_outputs(out, odo, poses)
     counts = {"frames_posed": len(poses["trajectory"][0]), "odometry_poses": len(poses["odometry"][0]),
-              "keyframes": len(odo.keyframes)}
+              "keyframes": len(odo.keyframes), "frames": len(odo.frames),
+              "timings_s": {k: round(v, 3) for k, v in odo.timings.items()}}
     if hasattr(odo, "frame_status"):
         counts["frame_status"] = odo.report()["frame_status"]
         counts["failures"] = odo.vio.failures
+        counts["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
     return counts
 
 

@@ -86,12 +86,15 @@ class RunOutputs:
 
 
 def load_run(trajectory_path: str | Path, label: str | None = None) -> RunOutputs:
-    """An estimate (TUM or EuRoC CSV) with ``keyframes.txt``, ``report.json`` and ``velocity.txt`` from its folder
-    where present; ``label`` defaults to the path."""
+    """An estimate (TUM or EuRoC CSV) with ``keyframes.txt``, ``report.json`` (or the frontend node's
+    ``frontend_report.json``, which has the same ``frames``, ``timings_s`` and ``vio``) and ``velocity.txt`` from
+    its folder where present; ``label`` defaults to the path."""
     path = Path(trajectory_path)
     folder = path.parent
     keyframes = folder / "keyframes.txt"
     report = folder / "report.json"
+    if not report.is_file():
+        report = folder / "frontend_report.json"
     velocity = None
     if (folder / "velocity.txt").is_file():
         rows = np.loadtxt(folder / "velocity.txt", ndmin=2)
