@@ -185,7 +185,7 @@ def test_scale_check_refines_a_scale_a_few_percent_off_and_fails_one_that_did_no
     sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
                        imu_noise=True)
     ids = list(range(20))
-    est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=True)
+    est, T_cw = _metric_estimator(sc, 1.04)
     assert not est.scale_check_due(int(sc.stamps_ns[8]))           # 0.9 s after the alignment
     assert est.scale_check_due(int(sc.stamps_ns[-1]))
     al = est.check_scale(ids, sc.stamps_ns, T_cw)
@@ -194,13 +194,34 @@ def test_scale_check_refines_a_scale_a_few_percent_off_and_fails_one_that_did_no
     assert (est.states[12].velocity - sc.velocities[12]).norm() < 0.05
     assert est.scale_history[-1]["stage"] == "scale_check" and est.metric and not est.failures
     assert not est.scale_check_due(int(sc.stamps_ns[-1]))            # once
-    est, T_cw = _metric_estimator(sc, 1.04)                         # refinement off (default): checked only
+    est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=False)  # refinement off: checked only
     assert est.check_scale(ids, sc.stamps_ns, T_cw) is None and est.metric and est.scale_checked
     est, T_cw = _metric_estimator(sc, 1.3)
     assert est.check_scale(ids, sc.stamps_ns, T_cw) is None
     assert not est.metric and est.stage == Stage.VISION_ONLY and est.initializer.first == 20
     assert "scale did not hold" in est.failures[0]["reason"]
     assert (est.states[12].velocity == 0).all() and est.alignment is None
+
+
+def test_scale_refinement_only_when_the_check_is_significant_with_its_own_pose_noise():
+    """``scale_refinement_min_sigmas``: a check whose |log scale| is under that many standard deviations leaves the
+    map alone (recorded, not refined); a 4% error is many of them and is refined. ``scale_check_pose_noise`` is
+    the pose noise the check's inertial-only problem assumes: smaller noise, smaller standard deviation."""
+    sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
+                       imu_noise=True)
+    ids = list(range(20))
+    stds = {}
+    for noise in (None, (1e-4, 1e-4)):
+        est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=True, scale_refinement_min_sigmas=3.0,
+                                      scale_check_pose_noise=noise)
+        assert est.check_scale(ids, sc.stamps_ns, T_cw) is not None and est.scale_history[-1]["refined"]
+        stds[noise] = est.scale_history[-1]["log_scale_std"]
+    assert stds[(1e-4, 1e-4)] < stds[None]
+    est, T_cw = _metric_estimator(sc, 1.0, scale_refinement=True, scale_refinement_min_sigmas=3.0,
+                                  scale_check_pose_noise=(1e-4, 1e-4))
+    assert est.check_scale(ids, sc.stamps_ns, T_cw) is None and est.metric and est.scale_checked
+    check = est.scale_history[-1]
+    assert "refined" not in check and abs(math.log(check["scale"])) < 3.0 * check["log_scale_std"]
 
 
 def test_a_divergent_metric_state_is_a_failure_and_initialisation_restarts_after_it():

@@ -91,11 +91,9 @@ class VioConfig:
             gravity direction and scale re-estimated inertial-only over the keyframes since the alignment, poses
             fixed; ORB-SLAM3's scale refinement,
             :meth:`~vigs_core.vio.estimator.VisualInertialEstimator.check_scale`), so the depth is held at that
-            scale rather than at the window's of that moment. Off by default: first 60 s of hybrid MH_03, refined
-            scale 0.976 (std 0.9%), SE(3) ATE 12.9 -> 8.3 cm; but V2_01, 0.973 (std 1.1%) on a map whose scale
-            was right, 4.0 -> 5.6 cm (the inertial-only scale of a few seconds is only good to a few percent).
-            Whole length, stride 1: V1_01 3.20 -> 2.59 cm, V2_01 4.07 -> 4.93 cm (recall@10cm 96.2 -> 91.7%,
-            stride 10 95.1 -> 89.8%), MH_03 15.5 -> 9.0 cm.
+            scale rather than at the window's of that moment; only when the check is significant
+            (``scale_refinement_min_sigmas``). Whole hybrid MH_03: SE(3) ATE 12.6 -> 4.9 cm (check 0.988 +- 0.4%);
+            V1_01 and V2_01 unchanged (their checks under 3 standard deviations); docs/benchmarks.md.
         anchor_velocity_std: without ``marginalize`` (and at the first marginalisation, for the keyframe that
             was fixed): once metric, the velocities of the window's fixed keyframes are held at their last
             estimate with this standard deviation, m/s (the inertial counterpart of fixing their poses; 0 = off).
@@ -110,6 +108,14 @@ class VioConfig:
             initial values (free there; ``linear_gravity_norm``) is off ``gravity`` by more than this fraction: the
             poses and the IMU disagree (an accelerometer in other units or with a wrong scale factor, a wrong
             extrinsic). Over 579 attempts on hybrid EuRoC it stayed within 1.6%.
+        scale_refinement_min_sigmas: with ``scale_refinement``, the map is rescaled only when the check's
+            ``|log scale|`` is at least this many of its standard deviations (0: always): unrefined, the check
+            alone (an earlier session) rescaled V2_01's right map by 3% (4.1 -> 4.9 cm).
+        scale_check_pose_noise: ``(position m, rotation rad)`` noise the scale check's inertial-only problem
+            assumes on the keyframe poses (None: the initialisation's, ``InertialInitConfig`` defaults: 2 mm,
+            5 mrad). The check runs on seconds of joint VI-BA poses, far better than that; given ground-truth
+            poses, the defaults biased the inertial-only scale low by up to 15% (several of its standard
+            deviations) where 0.1 mm / 0.1 mrad found it within 1-2%.
         init_agreement_log_scale: an inertial-only solution is accepted only when the attempt at the keyframe
             before was trustworthy and plausible too and their log-scales differ by less than this (a single
             well-conditioned solution can still be wrong; two successive windows agreeing rarely are).
@@ -146,7 +152,9 @@ class VioConfig:
     metric_fixed_keyframes: int = 1
     metric_hold_fixed_disparity: bool = True
     metric_hold_delay_s: float = 10.0
-    scale_refinement: bool = False
+    scale_refinement: bool = True
+    scale_refinement_min_sigmas: float = 3.0
+    scale_check_pose_noise: tuple[float, float] | None = (1e-4, 1e-4)
     anchor_velocity_std: float = 0.01
     anchor_bias_gyro_std: float = 1e-3
     anchor_bias_acc_std: float = 1e-2

@@ -28,7 +28,7 @@ initialisation starts again on the current map (:meth:`StagedInitializer.restart
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -341,8 +341,12 @@ class VisualInertialEstimator:
         if len(sel) < 3 or not self.imu_covers(int(stamps_ns[sel[0]]), int(stamps_ns[sel[-1]])):
             return None
         try:
+            cfg = self.initializer.inertial_config()
+            if c.scale_check_pose_noise is not None:
+                cfg = replace(cfg, pose_position_std=c.scale_check_pose_noise[0],
+                              pose_rotation_std=c.scale_check_pose_noise[1])
             res = inertial_only_init(se3_inverse(poses[sel].to(F64)), stamps_ns[sel], self.imu, self.noise,
-                                     self.T_cb, self.initializer.inertial_config())
+                                     self.T_cb, cfg)
         except torch.linalg.LinAlgError:
             return None
         self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "scale_check",
@@ -359,8 +363,9 @@ class VisualInertialEstimator:
             self.fail(int(stamps_ns[-1]), f"the scale did not hold: the check {since_s:.1f} s after the alignment "
                                           f"found scale {res.scale:.3f}")
             return None
-        if not c.scale_refinement:
+        if not c.scale_refinement or abs(res.log_scale) < c.scale_refinement_min_sigmas * res.log_scale_std:
             return None
+        self.scale_history[-1]["refined"] = True
         alignment = alignment_from_gravity(res.R_wg, res.log_scale)
         refit = {ids[n]: res.velocities[m] for m, n in enumerate(sel)}
         for k in ids:
