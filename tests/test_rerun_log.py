@@ -88,8 +88,8 @@ def test_vigs_run_viz_streams_to_a_running_viewer(tmp_path):
                 if s.connect_ex(("127.0.0.1", port)) == 0:
                     break
             time.sleep(0.2)
-        out = subprocess.run([sys.executable, "-m", "vigs_cli.main", "run", str(SAMPLE_BAG), "--out", str(tmp_path / "o"),
-                              "--max-frames", "60", "--viz", f"rerun+http://127.0.0.1:{port}/proxy", "--no-progress"],
+        out = subprocess.run([sys.executable, "-m", "vigs_cli.main", "run", str(SAMPLE_BAG), "--out",
+                              str(tmp_path / "o"), "--max-frames", "60", "--viz", f"rerun+http://127.0.0.1:{port}/proxy", "--no-progress"],
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
     finally:

@@ -127,8 +127,8 @@ class ViewerNode(VigsNode):
             self._rejected("keyframe pose update", exc)
             return
         self.received["updates"] += 1
-        for kf_id, T in zip(update.ids, update.poses):
-            self.recorder.keyframe(int(kf_id), np.asarray(T, dtype=np.float64))
+        self.recorder.move_keyframes({int(k): np.asarray(T, dtype=np.float64)
+                                      for k, T in zip(update.ids, update.poses)})
         if loop:
             self.recorder.event(f"loop correction: {len(update.ids)} keyframes moved")
 

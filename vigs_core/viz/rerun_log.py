@@ -9,9 +9,10 @@ Entity paths:
   processed grey image (every ``image_every`` frames).
 * ``world/body``: the body pose, where the input is a graph's ``/odometry`` (:mod:`vigs_ros.viewer_node`).
 * ``world/trajectory``: the causal (odometry) positions so far (of the camera in ``vigs run``, of the body in the
-  viewer node), one line strip, every ``trajectory_every`` poses; ``world/trajectory_final``: the final frame positions (after BA and loop
-  corrections) when the run ends; ``world/groundtruth``: the ground truth aligned to them, when there is one.
-* ``world/keyframes``: keyframe positions (re-logged on every new keyframe and loop correction);
+  viewer node), one line strip, every ``trajectory_every`` poses; ``world/trajectory_final``: the final frame
+  positions (after BA and loop corrections) when the run ends; ``world/groundtruth``: the ground truth aligned to
+  them, when there is one.
+* ``world/keyframes``: keyframe positions (re-logged on every new keyframe, pose update and loop correction);
   ``world/keyframe_points``: the newest keyframe's grid points from its depth, coloured by its image (they
   project onto ``world/camera/image``: the tracked keyframe depth over the current image).
 * ``world/map``: the Gaussian map's centres and colours (every ``map_period_s`` and after loop corrections).
@@ -148,14 +149,18 @@ class RerunRecorder:
                  disp: np.ndarray | None = None, coords: np.ndarray | None = None) -> None:
         """A keyframe's pose (4, 4) (new, or moved by BA or a loop correction); with its grey ``image``, grid
         disparities ``disp`` (P,) and grid pixel ``coords`` (P, 2), its points (:func:`keyframe_points`)."""
-        rr = self.rr
-        self._keyframe_positions[int(kf_id)] = np.array(T_WC[:3, 3], dtype=np.float64)
-        self.rec.log("world/keyframes", rr.Points3D(list(self._keyframe_positions.values()), radii=0.02,
-                                                    colors=[[40, 120, 230]]))
+        self.move_keyframes({kf_id: T_WC})
         if image is not None and disp is not None and coords is not None:
             points, grey = keyframe_points(image, disp, coords, T_WC, self.intrinsics)
-            self.rec.log("world/keyframe_points", rr.Points3D(points, colors=np.repeat(grey[:, None], 3, axis=1),
-                                                               radii=0.01))
+            self.rec.log("world/keyframe_points", self.rr.Points3D(points, radii=0.01,
+                                                                    colors=np.repeat(grey[:, None], 3, axis=1)))
+
+    def move_keyframes(self, poses: dict[int, np.ndarray]) -> None:
+        """New poses (4, 4) of keyframes ``{id: T_WC}`` (BA, a loop correction): ``world/keyframes`` logged once."""
+        for kf_id, T_WC in poses.items():
+            self._keyframe_positions[int(kf_id)] = np.array(T_WC[:3, 3], dtype=np.float64)
+        self.rec.log("world/keyframes", self.rr.Points3D(list(self._keyframe_positions.values()), radii=0.02,
+                                                         colors=[[40, 120, 230]]))
 
     def map_points(self, means: np.ndarray, colors: np.ndarray, radii: np.ndarray | None = None) -> None:
         """The map as points: centres (N, 3), RGB colours (N, 3) in [0, 1], radii (N,) (at most
