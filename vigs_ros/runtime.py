@@ -11,6 +11,7 @@ node raised.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
@@ -239,6 +240,11 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     from rclpy.signals import SignalHandlerOptions
 
     context = Context()
+    # rclpy's handlers shut the context down (the executor then ends) and chain to the Python handler installed
+    # before them. Python's default SIGINT handler would also raise KeyboardInterrupt at any point of the main
+    # thread, e.g. inside an executor's Task constructor (a half-made Task then prints "Exception ignored in
+    # Future.__del__" when collected): the shutdown alone ends the run.
+    signal.signal(signal.SIGINT, lambda *_: None)
     rclpy.init(args=sys.argv if args is None else args, context=context,
                signal_handler_options=SignalHandlerOptions.ALL)
     nodes: list[Node] = []
