@@ -185,7 +185,7 @@ def test_scale_check_refines_a_scale_a_few_percent_off_and_fails_one_that_did_no
     sc = make_scenario(n=20, spacing_s=0.3, seed=3, bias_gyro=(0.002, -0.02, 0.01), bias_acc=(0.05, -0.1, 0.08),
                        imu_noise=True)
     ids = list(range(20))
-    est, T_cw = _metric_estimator(sc, 1.04)
+    est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=True)
     assert not est.scale_check_due(int(sc.stamps_ns[8]))           # 0.9 s after the alignment
     assert est.scale_check_due(int(sc.stamps_ns[-1]))
     al = est.check_scale(ids, sc.stamps_ns, T_cw)
@@ -194,7 +194,7 @@ def test_scale_check_refines_a_scale_a_few_percent_off_and_fails_one_that_did_no
     assert (est.states[12].velocity - sc.velocities[12]).norm() < 0.05
     assert est.scale_history[-1]["stage"] == "scale_check" and est.metric and not est.failures
     assert not est.scale_check_due(int(sc.stamps_ns[-1]))            # once
-    est, T_cw = _metric_estimator(sc, 1.04, scale_refinement=False)  # refinement off: checked only
+    est, T_cw = _metric_estimator(sc, 1.04)                         # refinement off (default): checked only
     assert est.check_scale(ids, sc.stamps_ns, T_cw) is None and est.metric and est.scale_checked
     est, T_cw = _metric_estimator(sc, 1.3)
     assert est.check_scale(ids, sc.stamps_ns, T_cw) is None
