@@ -632,9 +632,10 @@ def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Pat
               "keyframes": len(odo.keyframes), "frames": len(odo.frames),
               "timings_s": {k: round(v, 3) for k, v in odo.timings.items()}}
     if hasattr(odo, "frame_status"):
-        counts["frame_status"] = odo.report()["frame_status"]
+        vio = odo.report()
+        counts["frame_status"] = vio["frame_status"]
         counts["failures"] = odo.vio.failures
-        counts["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
+        counts["vio"] = {**vio, "keyframe_states": odo.keyframe_states()}
     return counts
 
 

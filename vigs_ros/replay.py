@@ -205,7 +205,8 @@ class BagPlayer:
     def wait_for_subscribers(self, stop: threading.Event | None = None) -> list[str]:
         """Wait until every ``wait_for`` topic has a subscriber and, in ``fast`` mode with ``wait_for`` topics,
         the acknowledgement topic a publisher (so the first acknowledgement is not lost to discovery);
-        returns the topics still missing one."""
+        returns the topics still missing one (``stop`` ends the wait early)."""
+        stop = stop or threading.Event()
         deadline = time.monotonic() + self.config.wait_timeout_s
         missing = list(self.config.wait_for)
         if self.config.fast and missing:
@@ -220,7 +221,7 @@ class BagPlayer:
                 return self.publishers[topic].get_subscription_count() > 0
             return self.node.count_subscribers(topic) > 0
 
-        while missing and time.monotonic() < deadline and self.context.ok() and not (stop and stop.is_set()):
+        while missing and time.monotonic() < deadline and self.context.ok() and not stop.is_set():
             missing = [t for t in missing if not has_peer(t)]
             if missing:
                 time.sleep(0.05)
@@ -232,6 +233,7 @@ class BagPlayer:
         """Publish the bag (blocking); ``stop`` ends it early. Returns the statistics."""
         from rosgraph_msgs.msg import Clock
 
+        stop = stop or threading.Event()
         from msg_adapters.common import ns_to_stamp
         from msg_adapters.types import RclpyTypes
 
@@ -248,7 +250,7 @@ class BagPlayer:
         lookahead_ns = int(cfg.fast_lookahead_s * 1e9)
         waiting: tuple[int, int] | None = None  # (stamp of the gated message, acks counted before it)
         for conn, t_ns, raw in self.reader.messages(connections=self.connections, start=t_first, stop=t_last + 1):
-            if (stop is not None and stop.is_set()) or not self.context.ok():
+            if stop.is_set() or not self.context.ok():
                 break
             gated = cfg.fast and conn.topic == self.gate_topic
             if waiting is not None and (gated or t_ns > waiting[0] + lookahead_ns):
@@ -256,7 +258,7 @@ class BagPlayer:
                 waiting = None
             if not cfg.fast:
                 due = wall0 + (t_ns - t_first) * 1e-9 / cfg.rate
-                while (left := due - time.monotonic()) > 0 and not (stop is not None and stop.is_set()):
+                while (left := due - time.monotonic()) > 0 and not stop.is_set():
                     time.sleep(min(left, 0.1))
             if self.clock_pub is not None and (last_clock is None or t_ns >= last_clock + clock_step_ns):
                 if not self._publish(self.clock_pub, Clock(clock=ns_to_stamp(types, t_ns))):
@@ -291,11 +293,11 @@ class BagPlayer:
                 raise
             return False
 
-    def _wait_ack(self, acks_before: int, stop: threading.Event | None) -> None:
+    def _wait_ack(self, acks_before: int, stop: threading.Event) -> None:
         """Wait for an acknowledgement after ``acks_before``, in short slices so ``stop`` ends the wait."""
         deadline = time.monotonic() + self.config.ack_timeout_s
         with self._ack_cond:
-            while self._acks <= acks_before and self.context.ok() and not (stop is not None and stop.is_set()):
+            while self._acks <= acks_before and self.context.ok() and not stop.is_set():
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self.stats.ack_timeouts += 1

@@ -19,6 +19,7 @@ parameters):
 from __future__ import annotations
 
 import sys
+from collections import deque
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -58,7 +59,7 @@ class ViewerNode(VigsNode):
         self.p = declare(self, PARAMS)
         self.config = build_config(RerunConfig(), self.p, "rerun.")
         self.recorder: RerunRecorder | None = None   # made on the first keyframe (it carries the intrinsics)
-        self.pending_odometry: list[tuple[int, np.ndarray]] = []
+        self.pending_odometry: deque[tuple[int, np.ndarray]] = deque(maxlen=1000)   # until the first keyframe
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.statuses: dict[str, tuple[int, str]] = {}
         self.received = {"odometry": 0, "keyframes": 0, "updates": 0, "map_clouds": 0}
@@ -108,8 +109,8 @@ class ViewerNode(VigsNode):
         except ValueError as exc:
             self._rejected("odometry", exc)
             return
-        if self.recorder is None:   # before the first keyframe: kept (bounded) until the recorder exists
-            self.pending_odometry = (self.pending_odometry + [(odo["t_ns"], odo["T"])])[-1000:]
+        if self.recorder is None:   # before the first keyframe: kept (the newest 1000) until the recorder exists
+            self.pending_odometry.append((odo["t_ns"], odo["T"]))
             return
         self._log_odometry(odo["t_ns"], odo["T"])
 

@@ -296,23 +296,21 @@ class Checkpoints:
 
 def _finish_recording(recorder, odo, seq: InputSequence, poses: dict, report: dict, mapping) -> None:
     """The run's end in the rerun recording: final trajectory and keyframes, loop edges, the map, and the ground
-    truth (camera positions) mapped into the estimate's world by the inverse of the evaluation's alignment
-    (SE(3) when metric, else Sim(3))."""
-    from vigs_core.eval.alignment import align
+    truth (camera positions, :func:`_reference`) mapped into the estimate's world by the inverse of the
+    evaluation's alignment (SE(3) when metric, else Sim(3); :func:`~vigs_core.eval.align_estimate`)."""
+    from vigs_core.eval import align_estimate
 
     t_ns, T_WC = poses["trajectory_cam"]
     _, T_WB_kf = poses["keyframes"]
     gt = None
     if seq.groundtruth is not None and len(t_ns) >= 3:
-        ref, inside = groundtruth_at(seq.groundtruth, t_ns)
-        if len(ref) >= 3:
-            gt_cam = (ref.matrices() @ seq.T_BS)[:, :3, 3]
-            metric = report.get("vio", {}).get("metric", False)
-            try:
-                al = align(gt_cam, T_WC[inside, :3, 3], "se3" if metric else "sim3")
-                gt = (gt_cam - al.translation) @ al.rotation / al.scale
-            except ValueError:   # e.g. a platform held still: no alignment
-                gt = None
+        ref = _reference(seq.groundtruth, t_ns, seq.T_BS)
+        metric = report.get("vio", {}).get("metric", False)
+        try:
+            al = align_estimate(ref, poses_to_trajectory(t_ns, T_WC), "se3" if metric else "sim3", 1e-3).alignment
+            gt = (ref.position - al.translation) @ al.rotation / al.scale
+        except ValueError:   # fewer than 3 frames in the ground truth's span, or a platform held still
+            gt = None
     pairs = [tuple(p) for p in report.get("loop", {}).get("accepted_pairs", [])]
     recorder.finish(T_WC, sorted(odo.keyframes), T_WB_kf @ seq.T_BS, pairs, gt)
     if mapping is not None:
