@@ -5,7 +5,8 @@ The nodes, their executables, parameter files and remaps come from the graph's R
 (``launch/vigs.launch.xml``, :mod:`vigs_ros.launch_file`), the one ``ros2 launch vigs_ros vigs.launch.xml`` runs.
 Every node process gets ``--ros-args --params-file`` for its files there (``ros.yaml``, then the node's own) and
 then the user's files (later files override earlier ones; each is checked first against the nodes' declared
-parameters: unknown nodes or keys and wrong types are errors, :func:`vigs_ros.params.check_params_file`), its
+parameters: unknown nodes or keys, wrong types and values out of range are errors,
+:func:`vigs_ros.params.check_params_file`), its
 remaps, and ``-p use_sim_time:=true`` when a bag is replayed (nodes run on the bag's ``/clock``). The composed
 process gets the files and remaps of all its nodes.
 

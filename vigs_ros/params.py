@@ -14,10 +14,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from vigs_core.ranges import Range, field_range
 
 PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
 _ENTRY = re.compile(r"([A-Za-z_]\w*(?:,\s*[A-Za-z_]\w*)*):\s*(.*)")
@@ -26,16 +29,25 @@ _ENTRY = re.compile(r"([A-Za-z_]\w*(?:,\s*[A-Za-z_]\w*)*):\s*(.*)")
 @dataclass(frozen=True)
 class ParamSpec:
     """One declared parameter: ``name``, ``default`` (its type is the parameter's type), ``description``;
-    ``dynamic_typing`` accepts values of another type (e.g. an integer YAML value for a float field)."""
+    ``dynamic_typing`` accepts values of another type (e.g. an integer YAML value for a float field); ``range``:
+    the valid values of a number (:func:`vigs_core.ranges.bounded`), None for any."""
 
     name: str
     default: Any
     description: str
     dynamic_typing: bool = False
+    range: Range | None = None
 
 
 def declare(node, specs: list[ParamSpec]) -> dict[str, Any]:
-    """Declare ``specs`` on an rclpy ``node`` and return ``{name: value}`` (overrides applied by rcl)."""
+    """Declare ``specs`` on an rclpy ``node`` and return ``{name: value}`` (overrides applied by rcl).
+
+    A spec with a range: the declared value (default or override) is checked here, a ValueError naming the node,
+    the parameter, the range and the value (rclpy checks a range only on a value of its type, and a dynamically
+    typed float parameter may hold an int, ``gravity: 10``; nor can a descriptor express a ``lo_open`` end). Then
+    the range goes into the parameter's descriptor (``floating_point_range`` / ``integer_range``, by the default's
+    type), so rcl refuses later out-of-range sets and ``ros2 param describe`` shows it.
+    """
     from rcl_interfaces.msg import ParameterDescriptor
 
     values = {}
@@ -43,13 +55,34 @@ def declare(node, specs: list[ParamSpec]) -> dict[str, Any]:
         if node.has_parameter(spec.name):
             values[spec.name] = node.get_parameter(spec.name).value
             continue
-        param = node.declare_parameter(spec.name, spec.default, ParameterDescriptor(
-            description=spec.description, dynamic_typing=spec.dynamic_typing))
+        descriptor = ParameterDescriptor(description=spec.description, dynamic_typing=spec.dynamic_typing)
+        param = node.declare_parameter(spec.name, spec.default, descriptor)
         value = param.value
+        if spec.range is not None:
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value not in spec.range:
+                raise ValueError(f"node {node.get_name()}: parameter {spec.name}: expected a value in {spec.range}, "
+                                 f"got {value!r}")
+            node.set_descriptor(spec.name, _with_range(descriptor, spec))
         if isinstance(spec.default, (list, tuple)) and value is not None:
             value = list(value)
         values[spec.name] = value
     return values
+
+
+def _with_range(descriptor, spec: ParamSpec):
+    """``descriptor`` with ``spec.range`` as a closed range of the default's type (any value between: float step 0,
+    int step 1; an open end is unbounded, inf or the int64 limit)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange
+
+    lo, hi = spec.range.lo, spec.range.hi
+    if isinstance(spec.default, float):
+        descriptor.floating_point_range = [FloatingPointRange(
+            from_value=-math.inf if lo is None else float(lo), to_value=math.inf if hi is None else float(hi))]
+    else:
+        int64 = 2 ** 63 - 1
+        descriptor.integer_range = [IntegerRange(from_value=-int64 - 1 if lo is None else math.ceil(lo),
+                                                 to_value=int64 if hi is None else math.floor(hi), step=1)]
+    return descriptor
 
 
 def dataclass_specs(config, prefix: str = "", skip: tuple[str, ...] = ()) -> list[ParamSpec]:
@@ -59,7 +92,8 @@ def dataclass_specs(config, prefix: str = "", skip: tuple[str, ...] = ()) -> lis
 
     Fields named in ``skip`` (dotted, without the prefix), fields without a default, and fields whose value
     is not a bool, int, float, str or a non-empty list/tuple of numbers (e.g. ``None``) are left out: they are
-    not expressible as ROS parameters. Numbers are declared with dynamic typing (``10`` for a float field).
+    not expressible as ROS parameters. Numbers are declared with dynamic typing (``10`` for a float field) and
+    the field's range (:func:`vigs_core.ranges.field_range`).
     """
     specs = []
     cls = config if isinstance(config, type) else type(config)
@@ -84,8 +118,10 @@ def dataclass_specs(config, prefix: str = "", skip: tuple[str, ...] = ()) -> lis
         if not (isinstance(default, (bool, int, float, str)) or ok_list):
             continue
         description = field_descriptions(cls).get(f.name) or f"{cls.__name__}.{f.name}"
+        number = isinstance(default, (int, float)) and not isinstance(default, bool)
         specs.append(ParamSpec(prefix + f.name, default, description,
-                               dynamic_typing=not isinstance(default, (bool, str))))
+                               dynamic_typing=not isinstance(default, (bool, str)),
+                               range=field_range(f) if number else None))
     return specs
 
 
@@ -165,8 +201,9 @@ RCL_PARAMS = ("use_sim_time",)   # declared by rclpy itself on every node
 def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) -> None:
     """Check a parameter file against the nodes' declared parameters ``{node name: specs}``: valid YAML, only
     known node sections (or ``/**``), only declared keys (a ``/**`` key: declared by some node) and values of the
-    declared type (a float takes an int). ValueError naming the file, the node, the key and what was expected:
-    rcl would ignore an unknown key and a wrong type would stop the node with a traceback."""
+    declared type (a float takes an int) within the declared range. ValueError naming the file, the node, the key
+    and what was expected: rcl would ignore an unknown key, and a wrong type or a value out of range would stop the
+    node with a traceback."""
     from vigs_core.system.config import read_params_yaml
 
     path = Path(path)
@@ -188,21 +225,22 @@ def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) 
                     raise ValueError(f"{path}: parameter {key!r} of {node}: expected a mapping of its fields "
                                      f"(e.g. {inner[0][len(key) + 1:]}), got {value!r}")
                 raise ValueError(f"{path}: unknown parameter {key!r} of {node}")
-            problem = _type_problem(by_name[key].default, value)
+            problem = _type_problem(by_name[key].default, value, by_name[key].range)
             if problem:
                 raise ValueError(f"{path}: parameter {key!r} of {node}: {problem}")
 
 
-def _type_problem(default: Any, value: Any) -> str | None:
-    """Why ``value`` cannot set a parameter declared with ``default`` (the dataclass type check,
-    :func:`vigs_core.system.config.checked_value`, on the default's type; a list needs a non-empty list), or None."""
+def _type_problem(default: Any, value: Any, rng: Range | None = None) -> str | None:
+    """Why ``value`` cannot set a parameter declared with ``default`` and range ``rng`` (the dataclass type and
+    range check, :func:`vigs_core.system.config.checked_value`, on the default's type; a list needs a non-empty
+    list), or None."""
     from vigs_core.system.config import ParameterTypeError, checked_value
 
     if isinstance(default, (list, tuple)):
         ok = isinstance(value, list) and len(value) > 0
         return None if ok else f"expected a non-empty list, got {value!r} ({type(value).__name__})"
     try:
-        checked_value(value, type(default), "")
+        checked_value(value, type(default), "", rng)
     except ParameterTypeError as err:
         return err.problem
     return None

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from vigs_core.frontend.correspondence import Correspondences, PixelGrid
+from vigs_core.ranges import bounded
 
 PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
@@ -49,14 +50,14 @@ class DISFlowConfig:
     """
 
     preset: str = "ultrafast"
-    finest_scale: int | None = 1
-    patch_stride: int | None = None
-    gradient_descent_iterations: int | None = None
+    finest_scale: int | None = bounded(1, 0)
+    patch_stride: int | None = bounded(None, 1)
+    gradient_descent_iterations: int | None = bounded(None, 0)
     spatial_propagation: bool | None = None
     parallel_pair: bool = True
-    fb_sigma: float = 1.0
-    photometric_sigma: float = 12.0
-    border: float = 1.0
+    fb_sigma: float = bounded(1.0, 0, lo_open=True)
+    photometric_sigma: float = bounded(12.0, 0, lo_open=True)
+    border: float = bounded(1.0, 0)
 
 
 class DISFlowEstimator:

@@ -21,6 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+from vigs_core.ranges import bounded
+
 
 @dataclass
 class FrameGraphConfig:
@@ -33,11 +35,11 @@ class FrameGraphConfig:
         covis_max_edges: at most this many co-visibility edges (pairs) per new keyframe.
     """
 
-    window: int = 8
-    fixed: int = 1
-    temporal_radius: int = 2
-    covis_max_flow_px: float = 50.0
-    covis_max_edges: int = 1
+    window: int = bounded(8, 2)
+    fixed: int = bounded(1, 1)
+    temporal_radius: int = bounded(2, 0)
+    covis_max_flow_px: float = bounded(50.0, 0)
+    covis_max_edges: int = bounded(1, 0)
 
 
 class FrameGraph:

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from vigs_core.ranges import bounded
+
 
 @dataclass
 class KeyframePolicyConfig:
@@ -28,10 +30,10 @@ class KeyframePolicyConfig:
         max_flow_px: with ``translation_flow_px``, a keyframe also when the total mean flow exceeds this.
     """
 
-    flow_threshold_px: float = 16.0
-    max_interval_s: float = 3.0
-    translation_flow_px: float | None = 8.0
-    max_flow_px: float = 48.0
+    flow_threshold_px: float = bounded(16.0, 0)
+    max_interval_s: float = bounded(3.0, 0)
+    translation_flow_px: float | None = bounded(8.0, 0)
+    max_flow_px: float = bounded(48.0, 0)
 
 
 class KeyframePolicy:

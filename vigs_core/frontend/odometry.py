@@ -53,6 +53,7 @@ from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
 from vigs_core.frontend.keyframe_policy import KeyframePolicy, KeyframePolicyConfig
 from vigs_core.geometry import se3_exp, se3_inverse, se3_log
+from vigs_core.ranges import bounded
 from vigs_core.solver import BAConfig, EdgeSet, Intrinsics, align_pose, bundle_adjust, reproject
 
 
@@ -110,23 +111,23 @@ class OdometryConfig:
             ``Exp(r Log T)``; within it the plain product ``T T_last`` is used.
     """
 
-    grid_stride: int = 8
+    grid_stride: int = bounded(8, 1)
     flow: DISFlowConfig = field(default_factory=lambda: DISFlowConfig(finest_scale=0))
     tracking_flow: DISFlowConfig = field(default_factory=DISFlowConfig)
     covis_flow: DISFlowConfig = field(default_factory=lambda: DISFlowConfig(finest_scale=0))
     keyframes: KeyframePolicyConfig = field(default_factory=KeyframePolicyConfig)
     graph: FrameGraphConfig = field(default_factory=FrameGraphConfig)
     ba: BAConfig = field(default_factory=lambda: BAConfig(iterations=3, rel_tol=0.01))
-    init_ba_iterations: int = 15
-    init_min_parallax_px: float = 10.0
-    init_min_inliers: float = 0.6
-    init_max_flow_px: float = 80.0
-    refine_rounds: int = 0
-    tracking_iterations: int = 3
-    min_confidence: float = 0.05
+    init_ba_iterations: int = bounded(15, 0)
+    init_min_parallax_px: float = bounded(10.0, 0)
+    init_min_inliers: float = bounded(0.6, 0, 1)
+    init_max_flow_px: float = bounded(80.0, 0)
+    refine_rounds: int = bounded(0, 0)
+    tracking_iterations: int = bounded(3, 0)
+    min_confidence: float = bounded(0.05, 0, 1)
     solver_dtype: str = "float32"
     hold_fixed_disparity: bool = True
-    cv_rescale_tolerance: float = 0.25
+    cv_rescale_tolerance: float = bounded(0.25, 0)
 
     def __post_init__(self) -> None:
         if self.solver_dtype not in ("float32", "float64"):

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from vigs_core.loop.pose_graph import PoseGraphConfig
+from vigs_core.ranges import bounded
 
 
 @dataclass
@@ -27,13 +28,13 @@ class LoopDetectionConfig:
             searched again (avoids stacking near-identical loop edges; ours).
     """
 
-    min_keyframe_gap: int = 55
-    max_mean_flow_px: float = 22.0
-    max_orientation_deg: float = 120.0
-    min_mean_confidence: float = 0.1
-    max_flow_checks: int = 3
+    min_keyframe_gap: int = bounded(55, 0)
+    max_mean_flow_px: float = bounded(22.0, 0)
+    max_orientation_deg: float = bounded(120.0, 0, 180)
+    min_mean_confidence: float = bounded(0.1, 0, 1)
+    max_flow_checks: int = bounded(3, 0)
     thumbnail_size: tuple[int, int] = (32, 24)
-    min_keyframes_between_loops: int = 5
+    min_keyframes_between_loops: int = bounded(5, 0)
 
 
 @dataclass
@@ -63,19 +64,19 @@ class LoopVerificationConfig:
             so their Gauss-Newton information is over-confident; ours).
     """
 
-    min_confidence: float = 0.3
-    min_confident_fraction: float = 0.3
-    pnp_reprojection_px: float = 2.0
-    min_inlier_fraction: float = 0.6
-    inlier_px: float = 2.0
-    max_log_depth_ratio: float = 0.15
-    depth_sigma: float = 0.05
-    refine_iterations: int = 8
-    max_drift_fraction: float = 0.2
-    min_drift_m: float = 0.1
-    max_drift_rotation_deg: float = 20.0
-    max_drift_log_scale: float = 0.5
-    information_scale: float = 0.01
+    min_confidence: float = bounded(0.3, 0, 1)
+    min_confident_fraction: float = bounded(0.3, 0, 1)
+    pnp_reprojection_px: float = bounded(2.0, 0)
+    min_inlier_fraction: float = bounded(0.6, 0, 1)
+    inlier_px: float = bounded(2.0, 0, lo_open=True)
+    max_log_depth_ratio: float = bounded(0.15, 0)
+    depth_sigma: float = bounded(0.05, 0, lo_open=True)
+    refine_iterations: int = bounded(8, 0)
+    max_drift_fraction: float = bounded(0.2, 0)
+    min_drift_m: float = bounded(0.1, 0)
+    max_drift_rotation_deg: float = bounded(20.0, 0, 180)
+    max_drift_log_scale: float = bounded(0.5, 0)
+    information_scale: float = bounded(0.01, 0, lo_open=True)
 
 
 @dataclass
@@ -98,12 +99,12 @@ class LoopGraphConfig:
             0 (default): no such prior; measured no better (docs/benchmarks.md, "Estimator robustness").
     """
 
-    odometry_neighbours: int = 1
-    sigma_rotation_rad: float = 0.002
-    sigma_translation_m: float = 0.005
-    sigma_log_scale: float = 0.01
-    sigma_metric_log_scale: float = 0.002
-    sigma_metric_gravity_rad: float = 0.0
+    odometry_neighbours: int = bounded(1, 1)
+    sigma_rotation_rad: float = bounded(0.002, 0, lo_open=True)
+    sigma_translation_m: float = bounded(0.005, 0, lo_open=True)
+    sigma_log_scale: float = bounded(0.01, 0, lo_open=True)
+    sigma_metric_log_scale: float = bounded(0.002, 0, lo_open=True)
+    sigma_metric_gravity_rad: float = bounded(0.0, 0)
 
 
 @dataclass

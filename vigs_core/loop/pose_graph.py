@@ -31,6 +31,7 @@ import scipy.sparse.linalg
 import torch
 
 from vigs_core.geometry import hat, sim3_adjoint, sim3_exp, sim3_inverse, sim3_left_jacobian_inv, sim3_log
+from vigs_core.ranges import bounded
 
 
 @dataclass
@@ -44,10 +45,10 @@ class PoseGraphConfig:
         tolerance: stop when the relative cost decrease falls below this.
     """
 
-    max_iterations: int = 30
-    initial_damping: float = 1e-4
-    huber_delta: float = 3.0
-    tolerance: float = 1e-10
+    max_iterations: int = bounded(30, 0)
+    initial_damping: float = bounded(1e-4, 0, lo_open=True)
+    huber_delta: float = bounded(3.0, 0)
+    tolerance: float = bounded(1e-10, 0)
 
 
 @dataclass

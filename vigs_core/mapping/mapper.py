@@ -52,6 +52,7 @@ from vigs_core.mapping.metrics import psnr, ssim
 from vigs_core.mapping.optimizer import RowAdam
 from vigs_core.mapping.ply import save_map
 from vigs_core.mapping.rasterizer import RenderCamera, RenderOutput, RenderSettings, frustum_rows, make_rasterizer
+from vigs_core.ranges import bounded
 
 
 @dataclass
@@ -93,30 +94,30 @@ class MapperConfig:
             over improves the map (a live mapper at low priority); off: it waits.
     """
 
-    iterations: int = 10
-    window: int = 8
-    global_keyframes: int = 2
-    render_scale: float = 0.5
-    init_stride: int = 3
-    init_scale: float = 0.5
-    lambda_color: float = 0.9
-    lambda_depth: float = 0.1
-    lambda_iso: float = 10.0
-    lr_means: float = 1e-3
-    lr_log_scales: float = 5e-3
-    lr_quats: float = 2e-3
-    lr_opacity: float = 5e-2
-    lr_colors: float = 5e-3
-    densify_alpha: float = 0.6
-    densify_depth_ratio: float = 0.1
-    prune_min_opacity: float = 0.01
-    prune_max_angular: float = 0.1
+    iterations: int = bounded(10, 0)
+    window: int = bounded(8, 1)
+    global_keyframes: int = bounded(2, 0)
+    render_scale: float = bounded(0.5, 0, 1, lo_open=True)
+    init_stride: int = bounded(3, 1)
+    init_scale: float = bounded(0.5, 0, lo_open=True)
+    lambda_color: float = bounded(0.9, 0)
+    lambda_depth: float = bounded(0.1, 0)
+    lambda_iso: float = bounded(10.0, 0)
+    lr_means: float = bounded(1e-3, 0)
+    lr_log_scales: float = bounded(5e-3, 0)
+    lr_quats: float = bounded(2e-3, 0)
+    lr_opacity: float = bounded(5e-2, 0)
+    lr_colors: float = bounded(5e-3, 0)
+    densify_alpha: float = bounded(0.6, 0, 1)
+    densify_depth_ratio: float = bounded(0.1, 0)
+    prune_min_opacity: float = bounded(0.01, 0, 1)
+    prune_max_angular: float = bounded(0.1, 0)
     backend: str = "auto"
-    tile_size: int = 8
-    max_per_tile: int = 96
+    tile_size: int = bounded(8, 1)
+    max_per_tile: int = bounded(96, 1)
     seed: int = 0
     retain_heap: bool = True
-    max_backlog: int = 0
+    max_backlog: int = bounded(0, 0)
     refine_when_idle: bool = False
 
     def __post_init__(self) -> None:

@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import torch
 
 from vigs_core.geometry import se3_exp
+from vigs_core.ranges import bounded
 from vigs_core.solver.normal_equations import (EdgeSet, back_substitute, linearize_visual, schur_reduce,
                                                visual_cost)
 from vigs_core.solver.projective import Intrinsics
@@ -42,14 +43,14 @@ class BAConfig:
         rel_tol: stop when the relative cost decrease of an accepted step falls below this.
     """
 
-    iterations: int = 8
-    huber_delta: float = 2.0
-    lm_lambda: float = 1e-4
-    lm_lambda_min: float = 1e-10
-    lm_lambda_max: float = 1e6
-    disparity_damping: float = 1e-6
-    min_disparity: float = 1e-4
-    rel_tol: float = 1e-12
+    iterations: int = bounded(8, 0)
+    huber_delta: float = bounded(2.0, 0, lo_open=True)
+    lm_lambda: float = bounded(1e-4, 0, lo_open=True)
+    lm_lambda_min: float = bounded(1e-10, 0, lo_open=True)
+    lm_lambda_max: float = bounded(1e6, 0, lo_open=True)
+    disparity_damping: float = bounded(1e-6, 0)
+    min_disparity: float = bounded(1e-4, 0, lo_open=True)
+    rel_tol: float = bounded(1e-12, 0)
 
 
 class AdditionalTerms(Protocol):

@@ -15,6 +15,7 @@ import yaml
 
 from vigs_core.frontend.odometry import OdometryConfig
 from vigs_core.loop.config import LoopConfig
+from vigs_core.ranges import Range, bounded, field_range
 from vigs_core.system.mapping import MappingConfig
 from vigs_core.vio.config import VioConfig
 from vigs_core.viz.rerun_log import RerunConfig
@@ -49,15 +50,15 @@ class PipelineConfig:
         rerun: what ``vigs run --viz`` / ``--rrd`` log how often (:class:`vigs_core.viz.rerun_log.RerunConfig`).
     """
 
-    width: int = 376
-    height: int = 240
-    torch_threads: int = 1
-    max_frames: int | None = None
-    frame_stride: int = 1
+    width: int = bounded(376, 1)
+    height: int = bounded(240, 1)
+    torch_threads: int = bounded(1, 1)
+    max_frames: int | None = bounded(None, 0)
+    frame_stride: int = bounded(1, 1)
     image_topic: str | None = None
-    max_bad_frames: int = 20
-    checkpoint_period_s: float = 30.0
-    map_checkpoint_period_s: float = 120.0
+    max_bad_frames: int = bounded(20, 0)
+    checkpoint_period_s: float = bounded(30.0, 0)
+    map_checkpoint_period_s: float = bounded(120.0, 0)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     imu: VioConfig = field(default_factory=VioConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -66,16 +67,18 @@ class PipelineConfig:
 
 
 class ParameterTypeError(ValueError):
-    """A parameter value of the wrong type; ``problem`` says what was expected and what came."""
+    """A parameter value of the wrong type or outside its range; ``problem`` says what was expected and what
+    came."""
 
     def __init__(self, name: str, problem: str) -> None:
         super().__init__(f"parameter {name}: {problem}")
         self.problem = problem
 
 
-def checked_value(value: Any, kind: Any, name: str) -> Any:
-    """``value`` as a field of declared type ``kind`` (bool, int, float, str, ``X | None``, ``tuple[...]``, ...);
-    ValueError naming ``name``, the expected type and the value otherwise. An int is a float; a list is a
+def checked_value(value: Any, kind: Any, name: str, rng: Range | None = None) -> Any:
+    """``value`` as a field of declared type ``kind`` (bool, int, float, str, ``X | None``, ``tuple[...]``, ...)
+    and, when it is a number, within ``rng`` (the field's :func:`~vigs_core.ranges.bounded` range); ValueError
+    naming ``name``, the expected type or range and the value otherwise. An int is a float; a list is a
     tuple of the declared length. Raises :class:`ParameterTypeError`."""
     args = typing.get_args(kind)
     if type(kind) is types.UnionType or typing.get_origin(kind) is typing.Union:
@@ -84,7 +87,7 @@ def checked_value(value: Any, kind: Any, name: str) -> Any:
         errors = []
         for option in (a for a in args if a is not type(None)):
             try:
-                return checked_value(value, option, name)
+                return checked_value(value, option, name, rng)
             except ValueError as err:
                 errors.append(err)
         raise errors[0]
@@ -108,13 +111,15 @@ def checked_value(value: Any, kind: Any, name: str) -> Any:
     if not ok:
         expected = getattr(kind, "__name__", str(kind))
         raise ParameterTypeError(name, f"expected {expected}, got {value!r} ({type(value).__name__})")
+    if rng is not None and isinstance(value, (int, float)) and value not in rng:
+        raise ParameterTypeError(name, f"expected a value in {rng}, got {value!r}")
     return value
 
 
 def apply_overrides(obj: Any, values: dict, where: str = "") -> Any:
     """Set dataclass fields of ``obj`` from a (nested) mapping, in place, each checked against its declared type
-    (:func:`checked_value`); unknown keys raise ``KeyError`` naming the valid ones, a wrong type ``ValueError``
-    naming the key and the expected type. Returns ``obj``."""
+    and range (:func:`checked_value`); unknown keys raise ``KeyError`` naming the valid ones, a wrong type or a
+    value out of range ``ValueError`` naming the key and the expected type or range. Returns ``obj``."""
     names = {f.name: f for f in dataclasses.fields(obj)}
     hints = typing.get_type_hints(type(obj))
     for key, value in values.items():
@@ -127,7 +132,7 @@ def apply_overrides(obj: Any, values: dict, where: str = "") -> Any:
                                  f"got {value!r} ({type(value).__name__})")
             apply_overrides(current, value, f"{where}{key}.")
         else:
-            setattr(obj, key, checked_value(value, hints[key], f"{where}{key}"))
+            setattr(obj, key, checked_value(value, hints[key], f"{where}{key}", field_range(names[key])))
     if hasattr(obj, "__post_init__"):
         obj.__post_init__()
     return obj
@@ -148,7 +153,8 @@ def read_params_yaml(path: str | Path) -> dict:
 
 def load_config(path: str | Path | None = None, node: str = NODE_NAME) -> PipelineConfig:
     """Defaults, overridden by ``<node>: ros__parameters:`` of the YAML file ``path`` when given. Malformed YAML,
-    a missing section, unknown keys and wrong types raise ``ValueError`` naming the file and the key."""
+    a missing section, unknown keys, wrong types and values out of range raise ``ValueError`` naming the file and
+    the key."""
     cfg = PipelineConfig()
     if path is None:
         return cfg

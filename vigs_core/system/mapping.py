@@ -35,6 +35,7 @@ import torch
 
 from vigs_core.geometry import se3_inverse, se3_log
 from vigs_core.mapping import GaussianMapper, MapperConfig
+from vigs_core.ranges import bounded
 
 F64 = torch.float64
 
@@ -65,13 +66,13 @@ class MappingConfig:
 
     enabled: bool = True
     mapper: MapperConfig = field(default_factory=MapperConfig)
-    keyframe_delay: int = 1
-    min_confidence: float = 0.1
-    max_depth_ratio: float = 5.0
-    pose_tolerance: float = 1e-4
-    eval_stride: int = 5
-    eval_max_frames: int = 100
-    final_refine_iterations: int = 0
+    keyframe_delay: int = bounded(1, 0)
+    min_confidence: float = bounded(0.1, 0, 1)
+    max_depth_ratio: float = bounded(5.0, 0)
+    pose_tolerance: float = bounded(1e-4, 0)
+    eval_stride: int = bounded(5, 0)
+    eval_max_frames: int = bounded(100, 0)
+    final_refine_iterations: int = bounded(0, 0)
 
     def __post_init__(self) -> None:
         if self.keyframe_delay < 0 or self.eval_stride < 0 or self.final_refine_iterations < 0 or \

@@ -19,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from vigs_core.ranges import bounded
+
 
 @dataclass
 class VioConfig:
@@ -134,39 +136,39 @@ class VioConfig:
     per_keyframe_bias: bool = True
     staged_init: bool = True
     imu_keyframe_init: bool = True
-    vision_only_keyframes: int = 10
-    inertial_init_keyframes: int = 20
-    keyframe_init_max_cov_trace: float = 1e-4
-    gravity: float = 9.81
-    inertial_weight: float = 0.03
-    bias_prior_gyro_std: float = 0.1
-    bias_prior_acc_std: float = 0.5
+    vision_only_keyframes: int = bounded(10, 3)
+    inertial_init_keyframes: int = bounded(20, 3)
+    keyframe_init_max_cov_trace: float = bounded(1e-4, 0, lo_open=True)
+    gravity: float = bounded(9.81, 0, lo_open=True)
+    inertial_weight: float = bounded(0.03, 0, lo_open=True)
+    bias_prior_gyro_std: float = bounded(0.1, 0, lo_open=True)
+    bias_prior_acc_std: float = bounded(0.5, 0, lo_open=True)
     bias_from_inertial_init: bool = True
-    relinearize_bias_threshold: float = 0.01
-    max_init_log_scale_std: float = 0.02
-    max_init_gravity_std_deg: float = 2.0
+    relinearize_bias_threshold: float = bounded(0.01, 0)
+    max_init_log_scale_std: float = bounded(0.02, 0)
+    max_init_gravity_std_deg: float = bounded(2.0, 0)
     init_bias_random_walk: bool = True
     scheme: str = "closed_form"
-    max_imu_gap_s: float = 0.1
+    max_imu_gap_s: float = bounded(0.1, 0)
     marginalize: bool = False
     marginalize_visual: bool = True
-    metric_fixed_keyframes: int = 1
+    metric_fixed_keyframes: int = bounded(1, 0)
     metric_hold_fixed_disparity: bool = True
-    metric_hold_delay_s: float = 10.0
+    metric_hold_delay_s: float = bounded(10.0, 0)
     scale_refinement: bool = False
-    scale_refinement_min_sigmas: float = 3.0
+    scale_refinement_min_sigmas: float = bounded(3.0, 0)
     scale_check_pose_noise: tuple[float, float] | None = None
-    anchor_velocity_std: float = 0.01
-    anchor_bias_gyro_std: float = 1e-3
-    anchor_bias_acc_std: float = 1e-2
-    max_speed: float = 10.0
-    max_bias_gyro: float = 0.2
-    max_bias_acc: float = 1.0
-    max_init_gravity_error: float = 0.1
-    init_agreement_log_scale: float = 0.05
-    init_agreement_gravity_deg: float = 2.0
-    max_scale_drift: float = 0.15
-    still_max_flow_px: float = 1.0
+    anchor_velocity_std: float = bounded(0.01, 0)
+    anchor_bias_gyro_std: float = bounded(1e-3, 0, lo_open=True)
+    anchor_bias_acc_std: float = bounded(1e-2, 0, lo_open=True)
+    max_speed: float = bounded(10.0, 0, lo_open=True)
+    max_bias_gyro: float = bounded(0.2, 0, lo_open=True)
+    max_bias_acc: float = bounded(1.0, 0, lo_open=True)
+    max_init_gravity_error: float = bounded(0.1, 0, lo_open=True)
+    init_agreement_log_scale: float = bounded(0.05, 0, lo_open=True)
+    init_agreement_gravity_deg: float = bounded(2.0, 0, lo_open=True)
+    max_scale_drift: float = bounded(0.15, 0, lo_open=True)
+    still_max_flow_px: float = bounded(1.0, 0)
 
     def __post_init__(self) -> None:
         if self.vision_only_keyframes < 3 or self.inertial_init_keyframes < self.vision_only_keyframes:

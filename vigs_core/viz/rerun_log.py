@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vigs_core.ranges import bounded
+
 AXES = "xyz"
 
 
@@ -48,11 +50,11 @@ class RerunConfig:
         max_map_points: a map log holds at most this many Gaussians (an even subsample above it).
     """
 
-    image_every: int = 1
-    jpeg_quality: int = 85
-    trajectory_every: int = 10
-    map_period_s: float = 5.0
-    max_map_points: int = 100_000
+    image_every: int = bounded(1, 1)
+    jpeg_quality: int = bounded(85, 1, 100)
+    trajectory_every: int = bounded(10, 1)
+    map_period_s: float = bounded(5.0, 0)
+    max_map_points: int = bounded(100_000, 1)
 
 
 def camera_from_world(T_cw: torch.Tensor) -> np.ndarray:
