@@ -112,7 +112,7 @@ def test_an_accelerometer_bias_step_is_detected_and_nothing_divergent_is_publish
 def test_the_frontend_engine_reports_the_failure_once_and_the_status_it_leaves(clean):
     """The frontend node's engine on the bias step: the frame at which the estimator fails carries the failure's
     reason (the node turns it into a /vigs/status error), frames before it are metric (``tracking``), every frame
-    after it is ``lost`` (the node then publishes /odometry with ``odometry_unknown_std``)."""
+    after it is ``lost`` (the node then publishes /odometry with the unknown covariance)."""
     from vigs_ros.frontend_engine import FrontendEngine
 
     imu, _ = clean

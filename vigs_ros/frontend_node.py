@@ -41,11 +41,11 @@ No queue grows without bound: images wait at most ``image_queue_depth`` deep for
   depth scales), applied to the odometry as the in-process loop closure does
   (:meth:`FrontendEngine.apply_corrections`); the map frame jumps, ``odom`` stays continuous (REP-105).
 * out ``odometry_topic`` (nav_msgs/Odometry): ``base_frame`` in ``odom_frame`` per frame (REP-105), with the
-  pose covariance of the estimator's status when the pose is published: ``odometry_position_std`` /
-  ``odometry_rotation_std`` while metric, ``odometry_unknown_std`` (do not fuse) while initialising or lost;
-  the twist in ``base_frame`` (REP-105 / robot_localization) while metric: the frame's IMU-propagated velocity
-  and its bias-corrected gyro sample (:meth:`FrontendEngine.body_twist`), with the constant covariance of
-  ``odometry_velocity_std`` / ``odometry_angular_velocity_std``; zero with ``odometry_unknown_std`` otherwise;
+  pose covariance of :class:`~vigs_core.vio.odometry_covariance.OdometryCovariance` (``odometry_covariance.*``):
+  while metric a drift model that grows with the distance travelled, the unknown covariance (do not fuse) while
+  initialising or lost; the twist in ``base_frame`` (REP-105 / robot_localization) while metric: the frame's
+  IMU-propagated velocity and its bias-corrected gyro sample (:meth:`FrontendEngine.body_twist`), with the model's
+  constant twist covariance; zero with the unknown covariance otherwise;
   ``path_topic`` (nav_msgs/Path, transient-local): the keyframe body poses in ``map_frame`` as they are now
   (after BA, IMU initialisation and loop corrections), at most every ``path_period_s`` of wall time when they
   changed (a path of every frame, rebuilt at each correction, cost the tracking thread hundreds of milliseconds
@@ -110,6 +110,8 @@ from vigs_core.system import PipelineConfig
 from vigs_core.system.pipeline import Checkpoints, pose_outputs, write_pose_outputs
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
+from vigs_core.ranges import Range
+from vigs_core.vio.odometry_covariance import OdometryCovariance, OdometryCovarianceConfig
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_param
 from vigs_ros.frontend_engine import FrontendEngine
@@ -133,7 +135,7 @@ PARAMS = [
                                 "and frontend_report.json here (empty: nothing)"),
     ParamSpec("imu_topic", "/imu", "input sensor_msgs/Imu topic, for synchronising frames with the IMU"),
     ParamSpec("sync_imu", True, "process a frame only once the IMU has reached its stamp"),
-    ParamSpec("max_imu_wait_s", 0.5, "a frame waits at most this much frame time for the IMU (s)"),
+    ParamSpec("max_imu_wait_s", 0.5, "a frame waits at most this much frame time for the IMU (s)", range=Range(0)),
     ParamSpec("preintegrated_topic", "/vigs/preintegrated_imu", "input vigs_msgs/PreintegratedImu"),
     ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "input vigs_msgs/KeyframePoseUpdate (loop closure)"),
     ParamSpec("odometry_topic", "/odometry", "output nav_msgs/Odometry (odom_frame -> base_frame)"),
@@ -154,41 +156,34 @@ PARAMS = [
     ParamSpec("time_offset_s", 0.0, "camera-IMU time offset: t_imu = t_cam + offset (s, Kalibr timeshift_cam_imu)"),
     ParamSpec("track_during_keyframe_work", True, "track a frame that arrives during a keyframe's work at the work's "
                                                   "next yield point, instead of after it (module docstring)"),
-    ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)"),
-    ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long"),
-    ParamSpec("path_period_s", 1.0, "publish the path at most this often (wall s), when keyframes changed"),
-    ParamSpec("path_max_poses", 20000, "newest keyframes in the path"),
-    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
-    ParamSpec("odometry_position_std", 0.05, "position standard deviation (m) /odometry reports while the estimator "
-                                             "is metric (tracking / reinitialised; it computes no per-frame "
-                                             "covariance: set it from the benchmarks' ATE)"),
-    ParamSpec("odometry_rotation_std", 0.01, "rotation standard deviation (rad) /odometry reports while metric"),
-    ParamSpec("odometry_unknown_std", 1000.0, "standard deviation (m, rad) /odometry reports while the estimator "
-                                              "is not metric (initialising, lost, vision-only): do not fuse"),
-    ParamSpec("odometry_velocity_std", 0.03, "linear velocity standard deviation (m/s) of /odometry's twist while "
-                                             "metric (a calibrated constant: the shipped sample's IMU-propagated "
-                                             "frame velocity is off by 0.02 m/s rms per axis)"),
-    ParamSpec("odometry_angular_velocity_std", 0.07, "angular velocity standard deviation (rad/s) of /odometry's "
-                                                     "twist while metric (one bias-corrected gyro sample; the "
-                                                     "sample's is off the ground truth's rate by 0.03-0.07 rad/s "
-                                                     "rms per axis, vibration included)"),
+    ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)",
+              range=Range(1)),
+    ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long",
+              range=Range(0, lo_open=True)),
+    ParamSpec("path_period_s", 1.0, "publish the path at most this often (wall s), when keyframes changed",
+              range=Range(0)),
+    ParamSpec("path_max_poses", 20000, "newest keyframes in the path", range=Range(1)),
+    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
     ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window); "
-                                     "also bounds the samples queued for the tracking thread"),
-    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))"),
-    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))"),
-    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))"),
-    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))"),
-    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz)"),
+                                     "also bounds the samples queued for the tracking thread",
+                                     range=Range(0, lo_open=True)),
+    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz)", range=Range(0, lo_open=True)),
 ]
 # the in-process pipeline's settings (vigs_core.system.PipelineConfig), minus what belongs to other nodes (the
 # loop detector's, and the viewer node's rerun settings)
 PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop", "rerun"))
 PARAMS += PIPELINE_PARAMS
-
-
-def diagonal_covariance(stds: list[float]) -> np.ndarray:
-    """(6, 6) covariance with the squared standard deviations ``stds`` on its diagonal."""
-    return np.diag(np.square(np.asarray(stds, dtype=np.float64)))
+# /odometry's covariance model (vigs_core.vio.odometry_covariance)
+COVARIANCE_PARAMS = dataclass_specs(OdometryCovarianceConfig, "odometry_covariance.")
+PARAMS += COVARIANCE_PARAMS
 
 
 class FrontendNode(VigsNode):
@@ -218,6 +213,8 @@ class FrontendNode(VigsNode):
         self.engine: FrontendEngine | None = None
         self.realigned_at_ns: int | None = None
         self.frames = Rep105Frames()
+        self.covariance = OdometryCovariance(build_config(OdometryCovarianceConfig(), {
+            s.name: self.p[s.name] for s in COVARIANCE_PARAMS}, "odometry_covariance."))
         self.path_changed = False   # keyframes moved or were added since the path was last published
         self.path_published = -math.inf   # when (monotonic s)
         self.after_correction = False   # a loop correction was applied since the last published pose
@@ -501,30 +498,15 @@ class FrontendNode(VigsNode):
         v_b, w_b = twist if twist is not None else (np.zeros(3), np.zeros(3))
         self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"],
                                                velocity_world=T_odom_base[:3, :3] @ v_b, angular_velocity_body=w_b,
-                                               pose_covariance=self.pose_covariance(self.engine.status),
-                                               twist_covariance=self.twist_covariance(twist is not None)))
+                                               pose_covariance=self.covariance.pose(T_odom_base[:3, 3],
+                                                                                    self.engine.status),
+                                               twist_covariance=self.covariance.twist(twist is not None)))
         self.latency_s.append(time.monotonic() - arrived)
         self.status.count("odometry_out")
         if p["publish_tf"]:
             self.pub_tf.publish(tf_message(self.types, [
                 StampedTransform(t_ns, p["map_frame"], p["odom_frame"], T_map_odom),
                 StampedTransform(t_ns, p["odom_frame"], p["base_frame"], T_odom_base)]))
-
-    def pose_covariance(self, status: str) -> np.ndarray:
-        """(6, 6) covariance of /odometry's pose for the estimator's status (parameters ``odometry_*_std``)."""
-        p = self.p
-        if status in METRIC_STATUSES:
-            return diagonal_covariance([p["odometry_position_std"]] * 3 + [p["odometry_rotation_std"]] * 3)
-        return diagonal_covariance([p["odometry_unknown_std"]] * 6)
-
-    def twist_covariance(self, known: bool) -> np.ndarray:
-        """(6, 6) covariance of /odometry's twist (child frame): ``odometry_velocity_std`` and
-        ``odometry_angular_velocity_std`` when the frame has a metric twist, else ``odometry_unknown_std`` (the
-        twist is then zero and must not be fused)."""
-        p = self.p
-        if known:
-            return diagonal_covariance([p["odometry_velocity_std"]] * 3 + [p["odometry_angular_velocity_std"]] * 3)
-        return diagonal_covariance([p["odometry_unknown_std"]] * 6)
 
     def report_estimator(self, out) -> None:
         """The estimator's status on /vigs/status: an error while lost (with the failure's reason), a warning
