@@ -119,3 +119,32 @@ def test_cli_on_ros2_bag(tmp_path, capsys):
 def test_cli_reports_missing_input(tmp_path, capsys):
     assert main(["imu-check", str(tmp_path / "nothing")]) == 1
     assert "not found" in capsys.readouterr().err
+
+
+def test_still_segments_from_the_ground_truth_motion():
+    """A trajectory that stands still 2 s (with motion-capture noise), moves 3 s, then stands 1 s: two segments."""
+    from vigs_core.imu.static_init import still_segments_from_motion
+    from vigs_core.types import Trajectory
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 6.0, 0.005)
+    x = np.where(t < 2, 0.0, np.where(t < 5, 0.5 * (t - 2), 1.5))
+    pos = np.stack([x, np.zeros_like(t), np.ones_like(t)], 1) + rng.normal(0, 2e-4, (len(t), 3))
+    quat = np.tile([1.0, 0, 0, 0], (len(t), 1))
+    segments = still_segments_from_motion(Trajectory((t * 1e9).astype(np.int64), pos, quat)) * 1e-9
+    assert segments.shape == (2, 2)
+    np.testing.assert_allclose(segments, [[0.0, 2.0], [5.0, 6.0]], atol=0.15)
+
+
+def test_the_shipped_sample_stands_still_by_its_ground_truth(capsys):
+    """The sample's multirotor vibrates at rest as in flight, so the IMU alone finds no static segment; its
+    ground truth stands still for about its first second: the segment, its gyro bias and |g| are reported."""
+    sample = Path(__file__).resolve().parent.parent / "bags" / "v1_01_easy_hybrid_376x240"
+    assert main(["imu-check", str(sample), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    (still,) = report["static_segments"]
+    assert still["found_by"] == "ground-truth motion" and still["start_s"] < 0.1 and 0.8 < still["duration_s"] < 1.5
+    assert abs(report["gravity_magnitude"] - 9.81) < 0.05
+    assert "ground-truth motion" in report["gravity_source"]
+    # the real V1_01 gyro bias (EuRoC's estimate) is about (-0.002, 0.025, 0.082) rad/s
+    np.testing.assert_allclose(still["gyro_bias"], [-0.002, 0.025, 0.082], atol=0.01)

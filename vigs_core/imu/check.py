@@ -1,7 +1,8 @@
 """The analysis behind ``vigs imu-check``: what to verify about an IMU stream before blaming an estimator.
 
 Reports: sample rate and timestamp jitter; gaps, out-of-order and duplicated stamps; saturation
-(samples pinned at the extreme value of an axis, repeated); static segments with their gyro bias,
+(samples pinned at the extreme value of an axis, repeated); static segments (found in the IMU, else where the
+ground truth stands still) with their gyro bias,
 noise level and the noise density it implies (``std / sqrt(rate)``, to compare with the configured
 white-noise density; vibration inflates it); gravity magnitude on the longest static segment (without one,
 fitted to the ground-truth motion when the ground truth has biases, ``gravity_magnitude_fit``). With ground
@@ -22,7 +23,13 @@ from vigs_core.geometry import quat_to_matrix, se3_from_rt
 from vigs_core.imu.preintegration import preintegrate, stack_preintegrated
 from vigs_core.imu.residual import GRAVITY as GRAVITY_MAGNITUDE, inertial_residual
 from vigs_core.imu.samples import find_stream_defects, sanitize_samples
-from vigs_core.imu.static_init import StaticDetectorConfig, detect_static_segments, static_initialize
+from vigs_core.imu.static_init import (
+    MotionStillConfig,
+    StaticDetectorConfig,
+    detect_static_segments,
+    static_initialize,
+    still_segments_from_motion,
+)
 from vigs_core.types import ImuNoise, ImuSamples, Trajectory
 
 NEES_CONSISTENT = (0.5, 2.0)
@@ -39,6 +46,8 @@ class ImuCheckConfig:
         saturation_min_repeats: an axis extreme value counts as saturation when at least this many
             samples sit exactly on it.
         static: static-segment detector settings.
+        still_from_ground_truth: with ground truth and no static segment found in the IMU, the segments where the
+            ground truth stands still (:func:`~vigs_core.imu.static_init.still_segments_from_motion`).
         nees_window_s: length of the consistency windows (s).
         nees_max_windows: at most this many windows, evenly spread over the ground truth.
     """
@@ -46,6 +55,7 @@ class ImuCheckConfig:
     gap_factor: float = 1.5
     saturation_min_repeats: int = 5
     static: StaticDetectorConfig = field(default_factory=StaticDetectorConfig)
+    still_from_ground_truth: MotionStillConfig = field(default_factory=MotionStillConfig)
     nees_window_s: float = 1.0
     nees_max_windows: int = 100
 
@@ -195,12 +205,18 @@ def check_imu(
         },
     }
     segments = detect_static_segments(clean, cfg.static)
+    source = "IMU"
+    if len(segments) == 0 and gt is not None:
+        segments = [(a, b) for a, b in still_segments_from_motion(gt, cfg.still_from_ground_truth)
+                    if ((clean.t_ns >= a) & (clean.t_ns <= b)).sum() >= 10]   # static_initialize's minimum
+        source = "ground-truth motion"
     static = []
     rate = 1.0 / median_dt
     for t0, t1 in segments:
         s = static_initialize(clean, t0, t1)
         entry = {
             "start_s": float((t0 - clean.t_ns[0]) * 1e-9),
+            "found_by": source,
             "duration_s": float((t1 - t0) * 1e-9),
             "gyro_bias": s.bias_gyro.tolist(),
             "gyro_std": s.gyro_std.tolist(),
@@ -216,7 +232,7 @@ def check_imu(
     report["static_segments"] = static
     longest = max(static, key=lambda e: e["duration_s"]) if static else None
     report["gravity_magnitude"] = None if longest is None else longest["gravity_magnitude"]
-    report["gravity_source"] = None if longest is None else "longest static segment"
+    report["gravity_source"] = None if longest is None else f"longest static segment (found by the {source})"
     if gt is not None:
         c = preintegration_consistency(clean, gt, noise or ImuNoise(), cfg.nees_window_s, cfg.nees_max_windows)
         report["preintegration_consistency"] = c
@@ -243,7 +259,7 @@ def format_report(report: dict) -> str:
     for s in report["static_segments"]:
         ratio = f", {s['gyro_density_ratio']:.1f}x configured" if "gyro_density_ratio" in s else ""
         lines.append(
-            f"  at {s['start_s']:.2f} s for {s['duration_s']:.2f} s: gyro bias "
+            f"  at {s['start_s']:.2f} s for {s['duration_s']:.2f} s (found by the {s['found_by']}): gyro bias "
             f"[{', '.join(f'{x:+.4f}' for x in s['gyro_bias'])}] rad/s, |g| {s['gravity_magnitude']:.3f} m/s^2, "
             f"gyro noise density {s['implied_gyro_noise_density']:.2e}{ratio}"
         )

@@ -11,7 +11,9 @@ gravity (``a = R_wb^T (0, 0, |g|) + b_a``), so (OpenVINS-style static initialisa
     b_g = mean(w),   |g| ~= |mean(a)|,   R_wb = the minimal rotation taking mean(a)/|mean(a)| to +z
 
 (yaw is unobservable and set by the minimal rotation; the accelerometer bias is not separable from
-gravity here and is left to the inertial-only stage).
+gravity here and is left to the inertial-only stage). Where ground truth exists, still segments can also be
+taken from its motion (:func:`still_segments_from_motion`), for a platform whose vibration at rest is as strong
+as in motion.
 """
 from __future__ import annotations
 
@@ -21,7 +23,8 @@ import numpy as np
 import torch
 
 from vigs_core.imu.residual import gravity_rotation
-from vigs_core.types import ImuSamples
+from vigs_core.ranges import bounded
+from vigs_core.types import ImuSamples, Trajectory
 
 
 @dataclass
@@ -95,6 +98,48 @@ def detect_static_segments(imu: ImuSamples, config: StaticDetectorConfig | None 
     mask = np.cumsum(covered[:-1]) > 0
     edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
     segments = [(imu.t_ns[a], imu.t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+    keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= cfg.min_duration_s]
+    return np.array(keep, dtype=np.int64).reshape(-1, 2)
+
+
+@dataclass
+class MotionStillConfig:
+    """Settings of :func:`still_segments_from_motion`.
+
+    Args:
+        span_s: speeds and angular rates are taken over this span around each pose (s; smooths the motion
+            capture's noise).
+        max_speed: largest speed of a still pose (m/s).
+        max_rate: largest angular rate of a still pose (rad/s).
+        min_duration_s: shortest still segment reported (s).
+    """
+
+    span_s: float = bounded(0.2, 0, lo_open=True)
+    max_speed: float = bounded(0.02, 0, lo_open=True)
+    max_rate: float = bounded(0.05, 0, lo_open=True)
+    min_duration_s: float = bounded(0.25, 0)
+
+
+def still_segments_from_motion(gt: Trajectory, config: MotionStillConfig | None = None) -> np.ndarray:
+    """(S, 2) int64 ``(start_ns, end_ns)`` where a ground-truth trajectory stands still (speed and angular rate
+    under the limits, over ``span_s``): the static segments of a platform whose vibration hides them from the
+    IMU alone (a hovering or idling vehicle)."""
+    cfg = config or MotionStillConfig()
+    t = (gt.t_ns - gt.t_ns[0]) * 1e-9
+    if len(t) < 3:
+        return np.zeros((0, 2), np.int64)
+    lo = np.searchsorted(t, t - cfg.span_s / 2)
+    hi = np.minimum(np.searchsorted(t, t + cfg.span_s / 2, side="right") - 1, len(t) - 1)
+    hi = np.maximum(hi, np.minimum(lo + 1, len(t) - 1))
+    lo = np.minimum(lo, hi - 1)
+    dt = t[hi] - t[lo]
+    speed = np.linalg.norm(gt.position[hi] - gt.position[lo], axis=1) / dt
+    q = gt.quat_wxyz
+    dots = np.abs((q[hi] * q[lo]).sum(1)).clip(max=1.0)
+    rate = 2 * np.arccos(dots) / dt
+    still = (speed <= cfg.max_speed) & (rate <= cfg.max_rate)
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], still.astype(np.int8), [0]))))
+    segments = [(gt.t_ns[a], gt.t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
     keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= cfg.min_duration_s]
     return np.array(keep, dtype=np.int64).reshape(-1, 2)
 
