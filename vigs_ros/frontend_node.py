@@ -159,7 +159,7 @@ PARAMS = [
     ParamSpec("image_queue_depth", 10, "image subscription queue depth (older frames are dropped when slower)",
               range=Range(1)),
     ParamSpec("camera_info_timeout_s", 2.0, "report an error when images arrive without camera info for this long",
-              range=Range(0, lo_open=True)),
+              range=Range(0)),
     ParamSpec("path_period_s", 1.0, "publish the path at most this often (wall s), when keyframes changed",
               range=Range(0)),
     ParamSpec("path_max_poses", 20000, "newest keyframes in the path", range=Range(1)),

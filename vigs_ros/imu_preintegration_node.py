@@ -41,6 +41,7 @@ from msg_adapters.vigs import NavStateData, PreintegrationData, msg_to_nav_state
 from vigs_core.imu.buffer import ImuBuffer, ImuBufferConfig
 from vigs_core.imu.preintegration import Preintegrated, preintegrate
 from vigs_core.imu.propagation import ImuState, propagate_path
+from vigs_core.ranges import Range
 from vigs_core.types import ImuNoise
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, declare
@@ -59,23 +60,30 @@ PARAMS = [
     ParamSpec("status_topic", "/vigs/status", "output diagnostic_msgs/DiagnosticArray"),
     ParamSpec("world_frame", "map", "frame of the propagated odometry (the estimator's world)"),
     ParamSpec("base_frame", "base_link", "body (IMU) frame: child frame of the odometry"),
-    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))"),
-    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))"),
-    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))"),
-    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))"),
-    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz), for gap detection"),
-    ParamSpec("gap_factor", 2.5, "an IMU interval longer than this many nominal periods is reported as a gap"),
-    ParamSpec("buffer_s", 30.0, "IMU history kept (s)"),
-    ParamSpec("gravity", 9.81, "gravity magnitude (m/s^2); the world z axis points up"),
+    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))",
+              range=Range(0, lo_open=True)),
+    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz), for gap detection", range=Range(0, lo_open=True)),
+    ParamSpec("gap_factor", 2.5, "an IMU interval longer than this many nominal periods is reported as a gap",
+              range=Range(1, lo_open=True)),
+    ParamSpec("buffer_s", 30.0, "IMU history kept (s)", range=Range(0, lo_open=True)),
+    ParamSpec("gravity", 9.81, "gravity magnitude (m/s^2); the world z axis points up", range=Range(0, lo_open=True)),
     ParamSpec("integration_scheme", "closed_form", "preintegration scheme: closed_form or forster"),
     ParamSpec("publish_odometry", True, "publish IMU-rate propagated odometry"),
-    ParamSpec("odometry_every_n", 1, "publish odometry for every n-th IMU sample"),
+    ParamSpec("odometry_every_n", 1, "publish odometry for every n-th IMU sample", range=Range(1)),
     ParamSpec("odometry_before_init", False, "propagate odometry before the estimator reports inertial "
                                              "initialisation (the world is then not gravity-aligned)"),
-    ParamSpec("event_timeout_s", 2.0, "give up on a keyframe window the IMU has not covered after this (wall s)"),
-    ParamSpec("no_imu_error_s", 5.0, "report an error when no IMU message arrived this long after start (wall s)"),
-    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
-    ParamSpec("torch_threads", 1, "torch CPU threads of this process"),
+    ParamSpec("event_timeout_s", 2.0, "give up on a keyframe window the IMU has not covered after this (wall s)",
+              range=Range(0, lo_open=True)),
+    ParamSpec("no_imu_error_s", 5.0, "report an error when no IMU message arrived this long after start (wall s)",
+              range=Range(0, lo_open=True)),
+    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
+    ParamSpec("torch_threads", 1, "torch CPU threads of this process", range=Range(1)),
 ]
 
 

@@ -32,6 +32,7 @@ from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import PoseUpdateData, msg_to_keyframe, msg_to_pose_update, pose_update_to_msg
 from vigs_core.frontend import DISFlowConfig, DISFlowEstimator, PixelGrid
 from vigs_core.loop import KeyframeView, LoopClosure, LoopConfig, corrected_pose, corrections_for
+from vigs_core.ranges import Range
 from vigs_core.solver import Intrinsics
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
@@ -48,9 +49,9 @@ PARAMS = [
     ParamSpec("pose_update_topic", "/vigs/loop_pose_updates", "output vigs_msgs/KeyframePoseUpdate after PGBA"),
     ParamSpec("status_topic", "/vigs/status", "output diagnostic_msgs/DiagnosticArray"),
     ParamSpec("map_frame", "map", "frame of the keyframe poses"),
-    ParamSpec("poll_period_s", 0.2, "how often finished PGBA results are collected (s)"),
-    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
-    ParamSpec("torch_threads", 1, "torch and OpenCV CPU threads of this process"),
+    ParamSpec("poll_period_s", 0.2, "how often finished PGBA results are collected (s)", range=Range(0, lo_open=True)),
+    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
+    ParamSpec("torch_threads", 1, "torch and OpenCV CPU threads of this process", range=Range(1)),
 ]
 PARAMS += dataclass_specs(LoopConfig, "loop.", skip=("enabled", "process", "process_nice"))  # the node is a process
 PARAMS += dataclass_specs(DISFlowConfig, "flow.")

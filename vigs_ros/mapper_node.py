@@ -39,6 +39,7 @@ from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import GaussianDeltaData, gaussian_delta_to_msg, msg_to_keyframe, msg_to_pose_update
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.mapper import GaussianMapper, MapperConfig
+from vigs_core.ranges import Range
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.params import ParamSpec, build_config, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos
@@ -57,14 +58,15 @@ PARAMS = [
     ParamSpec("map_path", "out/ros/map.ply", "where ~/save_map and shutdown write the map (PLY + .json sidecar)"),
     ParamSpec("save_on_shutdown", True, "save the map to map_path at shutdown"),
     ParamSpec("shutdown_drain_s", 20.0, "at shutdown, apply queued keyframes / pose updates for at most this long "
-                                        "(s; keep it below the launcher's 30 s shutdown timeout)"),
-    ParamSpec("delta_period_s", 1.0, "period of Gaussian delta publication (s)"),
+                                        "(s; keep it below the launcher's 30 s shutdown timeout)", range=Range(0)),
+    ParamSpec("delta_period_s", 1.0, "period of Gaussian delta publication (s)", range=Range(0, lo_open=True)),
     ParamSpec("cloud_topic", "/vigs/map_cloud", "output sensor_msgs/PointCloud2 of the Gaussian means (RGB)"),
     ParamSpec("cloud_period_s", 2.0, "period of the map point cloud (s), sent only when the map changed; <= 0: off"),
-    ParamSpec("cloud_min_opacity", 0.3, "Gaussians below this opacity are left out of the point cloud"),
+    ParamSpec("cloud_min_opacity", 0.3, "Gaussians below this opacity are left out of the point cloud",
+              range=Range(0, 1)),
     ParamSpec("device", "cpu", "torch device of the map (cpu, cuda)"),
-    ParamSpec("torch_threads", 1, "torch CPU threads of this process"),
-    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)"),
+    ParamSpec("torch_threads", 1, "torch CPU threads of this process", range=Range(1)),
+    ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
 ]
 PARAMS += dataclass_specs(MapperConfig, "mapper.")
 
