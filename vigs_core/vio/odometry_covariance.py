@@ -3,7 +3,7 @@
 The odometry's pose is the causal VIO estimate in REP-105's continuous ``odom`` frame, never corrected by loop
 closure, so its error against the true path grows with the distance travelled. The VI-BA's marginal covariance
 describes the window relative to its own gauge, not that accumulated drift, so the published covariance is a
-documented model instead (issue 20 allows either), checked against the actual error by NEES
+documented model instead, checked against the actual error by NEES
 (:func:`vigs_core.eval.odometry_consistency.drift_errors`, ``benchmarks/odometry_covariance.py``)::
 
     sigma_position^2 = position_std^2 + (scale_std * r)^2 + (position_drift * d)^2     (each axis, m)
@@ -12,8 +12,8 @@ documented model instead (issue 20 allows either), checked against the actual er
 
 with ``r`` the distance from the first metric frame's position (an error of the metric scale moves every
 position in proportion to it) and ``d`` the path length travelled while metric since then (the drift that
-accumulates with motion, as VIO drift is usually reported). Roll and pitch are observable from gravity; yaw and
-position are not. The defaults are calibrated on the causal odometry of the hybrid sequences
+accumulates with motion, as VIO drift is usually reported). Roll and pitch are observable from gravity, so their
+error against the attitude at the first metric frame stays bounded; yaw and position are not observable. The defaults are calibrated on the causal odometry of the hybrid sequences
 (``vigs bench odometry_covariance``; docs/benchmarks.md).
 """
 from __future__ import annotations
