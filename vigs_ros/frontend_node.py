@@ -106,11 +106,11 @@ from msg_adapters.vigs import (
 )
 from vigs_core.camera import CameraModel
 from vigs_core.io import write_frame_schedule
+from vigs_core.ranges import Range
 from vigs_core.system import PipelineConfig
 from vigs_core.system.pipeline import Checkpoints, pose_outputs, write_pose_outputs
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
-from vigs_core.ranges import Range
 from vigs_core.vio.odometry_covariance import OdometryCovariance, OdometryCovarianceConfig
 from vigs_ros.diagnostics import StatusReporter
 from vigs_ros.frames import Rep105Frames, body_from_camera, invert, matrix_from_param
