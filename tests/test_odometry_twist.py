@@ -104,3 +104,21 @@ def test_the_pose_covariance_grows_with_the_path_and_is_consistent_with_the_erro
     tight = OdometryCovariance(OdometryCovarianceConfig(**{k: v / 10 for k, v in vars(DEFAULTS).items()}))
     tight_C = np.stack([tight.pose(T[:3, 3], status) for _, status, T in poses])[metric]
     assert nees(errors, tight_C).mean() / 6 > POSE_NEES_BAND[1]
+
+
+def test_the_drift_model_counts_metric_motion_only_and_restarts():
+    model, c = OdometryCovariance(), DEFAULTS
+    unknown = model.pose(np.zeros(3), "initialising")
+    np.testing.assert_allclose(np.diag(unknown), [c.unknown_std ** 2] * 6)
+    first = model.pose(np.array([1.0, 0, 0]), "tracking")   # the first metric frame: the start term only
+    np.testing.assert_allclose(np.diag(first), [c.position_std ** 2] * 3 + [c.tilt_std ** 2] * 2 + [c.yaw_std ** 2])
+    model.pose(np.array([4.0, 0, 0]), "tracking")
+    model.pose(np.array([4.0, 4, 0]), "lost")               # not counted, and no jump after it
+    C = model.pose(np.array([4.0, 3, 0]), "reinitialised")
+    assert model.distance == 3.0
+    r, d = np.sqrt(18.0), 3.0   # from the first metric position (1, 0, 0) to (4, 3, 0); metric path 3 m
+    expected = c.position_std ** 2 + (c.scale_std * r) ** 2 + (c.position_drift * d) ** 2
+    np.testing.assert_allclose(C[0, 0], expected)
+    np.testing.assert_allclose(C[5, 5], c.yaw_std ** 2 + (c.yaw_drift * d) ** 2)
+    model.restart()
+    np.testing.assert_allclose(model.pose(np.array([9.0, 9, 9]), "tracking"), first)

@@ -44,6 +44,24 @@ def test_rep105_odom_is_continuous_across_a_correction():
     np.testing.assert_allclose(T_map_odom, jump, atol=1e-12)
 
 
+def test_rep105_odom_reset_to_map_jumps_once_then_stays_continuous():
+    frames = Rep105Frames()
+    T = pose(2, 0.05)
+    frames.update(T)
+    frames.mark_correction()
+    realigned = pose(5, 0.3) @ T   # the world re-expressed: with mark_correction odom would absorb the jump
+    frames.reset_to_map()          # ... but odom becomes the map frame instead
+    T_map_odom, T_odom_base = frames.update(realigned)
+    np.testing.assert_allclose(T_map_odom, np.eye(4))
+    np.testing.assert_allclose(T_odom_base, realigned, atol=1e-12)
+    jump = pose(3, 0.5)            # a later loop correction is absorbed by map -> odom again
+    step = pose(2, 0.05)
+    frames.mark_correction()
+    T_map_odom, T_odom_base2 = frames.update(jump @ realigned @ step, T_map_base_before_correction=realigned @ step)
+    np.testing.assert_allclose(T_odom_base2, T_odom_base @ step, atol=1e-12)
+    np.testing.assert_allclose(T_map_odom, jump, atol=1e-12)
+
+
 def test_matrix_from_param_validates():
     T = matrix_from_param(list(pose(4).reshape(-1)), "T")
     assert T.shape == (4, 4)

@@ -8,7 +8,10 @@ discrete corrections (loop closures, keyframe pose updates)::
 
 :class:`Rep105Frames` keeps ``T_odom_base`` continuous: after a correction (``mark_correction``) the next
 estimate re-anchors ``T_map_odom = T_map_base_new T_odom_base_prev^-1`` (``T_odom_base`` continues from its
-previous value, moved by the estimate's change since the previous estimate in the map frame).
+previous value, moved by the estimate's change since the previous estimate in the map frame). :meth:`reset_to_map`
+is the one deliberate discontinuity: ``odom`` becomes the ``map`` frame again (the frontend's choice at the IMU
+initialisation, so that ``odom`` is gravity-aligned, z up, as REP-103 and navigation stacks expect, rather
+than the monocular start's camera frame).
 """
 from __future__ import annotations
 
@@ -56,6 +59,12 @@ class Rep105Frames:
         self.T_map_odom = np.eye(4)
         self._last_map_base: np.ndarray | None = None
         self._last_odom_base: np.ndarray | None = None
+        self._corrected = False
+
+    def reset_to_map(self) -> None:
+        """From the next estimate on, ``odom`` is the ``map`` frame (``T_map_odom = I``): ``odom -> base_link`` jumps
+        once, to the estimate itself."""
+        self.T_map_odom = np.eye(4)
         self._corrected = False
 
     def mark_correction(self) -> None:

@@ -7,7 +7,9 @@ coupled IMU fusion; vision-only :class:`vigs_core.frontend.DenseOdometry` with `
 frontend.yaml: ``width``, ``height``, ``torch_threads``, ``frame_stride``, ``odometry.*``, ``imu.*``; loop
 closure runs in the loop_detector node, not here). Until the IMU initialisation succeeds the world is the first
 camera frame at an arbitrary scale; then it is metric and gravity-aligned (``inertial_initialized``), the
-map frame jumps once (REP-105: ``odom`` stays continuous) and every keyframe pose is updated.
+map frame jumps once and every keyframe pose is updated. With ``odom_gravity_aligned`` (default) ``odom`` then
+becomes that gravity-aligned frame (``odom -> base_link`` jumps once, after poses published as not to be
+fused); without it ``odom`` stays continuous (REP-105) and keeps the first camera's orientation.
 
 Topics (names are parameters; see params/frontend.yaml and params/ros.yaml):
 
@@ -151,6 +153,10 @@ PARAMS = [
     ParamSpec("odom_frame", "odom", "REP-105 odom frame (continuous)"),
     ParamSpec("base_frame", "base_link", "body (IMU) frame"),
     ParamSpec("camera_frame", "camera", "camera optical frame"),
+    ParamSpec("odom_gravity_aligned", True, "at the IMU initialisation odom becomes the gravity-aligned metric map "
+                                            "frame (z up; odom -> base_link jumps once, from poses published with "
+                                            "the unknown covariance); false: odom stays continuous across it and "
+                                            "keeps the monocular start's camera orientation"),
     ParamSpec("publish_tf", True, "publish map->odom->base_link on /tf and base_link->camera on /tf_static"),
     ParamSpec("T_body_camera", IDENTITY_16, "camera pose in the body frame T_bc, 4x4 row-major (EuRoC: cam0 T_BS)"),
     ParamSpec("time_offset_s", 0.0, "camera-IMU time offset: t_imu = t_cam + offset (s, Kalibr timeshift_cam_imu)"),
@@ -491,7 +497,11 @@ class FrontendNode(VigsNode):
             T_before = self.engine.pose_before_correction(T_wc, self.engine.odometry.frames[-1].ref)
             before = None if T_before is None else body_from_camera(T_before, self.T_bc)
         if self.engine.stream.metric and not self.pose_metric:   # the IMU initialisation re-expressed the world
-            self.frames.mark_correction()
+            if p["odom_gravity_aligned"]:
+                self.frames.reset_to_map()
+                self.covariance.restart()
+            else:
+                self.frames.mark_correction()
         self.pose_metric = self.engine.stream.metric
         T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc), before)
         twist = self.engine.body_twist(t_ns, T_wc) if self.engine.status in METRIC_STATUSES else None
@@ -526,7 +536,7 @@ class FrontendNode(VigsNode):
         self.report_estimator(out)
         if out.T_wc is None:
             return
-        if out.realigned:  # IMU initialisation re-expressed the world: map jumps, odom stays continuous
+        if out.realigned:  # IMU initialisation re-expressed the world: map jumps (odom: odom_gravity_aligned)
             self.realigned_at_ns = out.t_ns
             self.get_logger().info("IMU initialised: the world is now metric and gravity-aligned")
         for kf in out.new_keyframes:

@@ -71,6 +71,11 @@ class OdometryCovariance:
         self._origin: np.ndarray | None = None   # the first metric frame's position
         self._last: np.ndarray | None = None
 
+    def restart(self) -> None:
+        """The odometry frame was reset (e.g. to the gravity-aligned world at an IMU re-initialisation): the
+        distances count again from the next metric frame."""
+        self.distance, self._origin, self._last = 0.0, None, None
+
     def pose(self, position: np.ndarray, status: str) -> np.ndarray:
         """(6, 6) covariance of the pose (x, y, z, roll, pitch, yaw about the fixed frame's axes, REP-103) of a
         frame at ``position`` (3,) in the odometry frame, published with the estimator's ``status``."""
