@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vigs_core.ranges import bounded
+
 
 @dataclass
 class ImuSamples:
@@ -51,19 +53,19 @@ class ImuNoise:
     """Continuous-time IMU noise model (Kalibr / EuRoC ``sensor.yaml`` conventions).
 
     Attributes:
-        gyro_noise_density: rad/s/sqrt(Hz) (white noise).
-        gyro_random_walk: rad/s^2/sqrt(Hz) (bias random walk).
-        acc_noise_density: m/s^2/sqrt(Hz).
-        acc_random_walk: m/s^3/sqrt(Hz).
+        gyro_noise_density: gyroscope white noise, rad/s/sqrt(Hz).
+        gyro_random_walk: gyroscope bias random walk, rad/s^2/sqrt(Hz).
+        acc_noise_density: accelerometer white noise, m/s^2/sqrt(Hz).
+        acc_random_walk: accelerometer bias random walk, m/s^3/sqrt(Hz).
         rate_hz: nominal sample rate (Hz).
         T_BS: (4, 4) pose of the IMU sensor in the body frame (identity for EuRoC).
     """
 
-    gyro_noise_density: float = 1.6968e-04
-    gyro_random_walk: float = 1.9393e-05
-    acc_noise_density: float = 2.0e-3
-    acc_random_walk: float = 3.0e-3
-    rate_hz: float = 200.0
+    gyro_noise_density: float = bounded(1.6968e-04, 0, lo_open=True)
+    gyro_random_walk: float = bounded(1.9393e-05, 0, lo_open=True)
+    acc_noise_density: float = bounded(2.0e-3, 0, lo_open=True)
+    acc_random_walk: float = bounded(3.0e-3, 0, lo_open=True)
+    rate_hz: float = bounded(200.0, 0, lo_open=True)
     T_BS: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 

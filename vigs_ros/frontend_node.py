@@ -173,15 +173,6 @@ PARAMS = [
     ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window); "
                                      "also bounds the samples queued for the tracking thread",
                                      range=Range(0, lo_open=True)),
-    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz)", range=Range(0, lo_open=True)),
 ]
 # the in-process pipeline's settings (vigs_core.system.PipelineConfig), minus what belongs to other nodes (the
 # loop detector's, and the viewer node's rerun settings)
@@ -190,6 +181,7 @@ PARAMS += PIPELINE_PARAMS
 # /odometry's covariance model (vigs_core.vio.odometry_covariance)
 COVARIANCE_PARAMS = dataclass_specs(OdometryCovarianceConfig, "odometry_covariance.")
 PARAMS += COVARIANCE_PARAMS
+PARAMS += dataclass_specs(ImuNoise)   # gyro_noise_density, ..., rate_hz (vigs_core.types.ImuNoise)
 
 
 class FrontendNode(VigsNode):

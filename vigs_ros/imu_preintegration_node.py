@@ -44,7 +44,7 @@ from vigs_core.imu.propagation import ImuState, propagate_path
 from vigs_core.ranges import Range
 from vigs_core.types import ImuNoise
 from vigs_ros.diagnostics import StatusReporter
-from vigs_ros.params import ParamSpec, declare
+from vigs_ros.params import ParamSpec, dataclass_specs, declare
 from vigs_ros.qos import latched_qos, reliable_qos, sensor_qos
 from vigs_ros.runtime import VigsNode, process_nice, run_nodes
 
@@ -60,15 +60,6 @@ PARAMS = [
     ParamSpec("status_topic", "/vigs/status", "output diagnostic_msgs/DiagnosticArray"),
     ParamSpec("world_frame", "map", "frame of the propagated odometry (the estimator's world)"),
     ParamSpec("base_frame", "base_link", "body (IMU) frame: child frame of the odometry"),
-    ParamSpec("gyro_noise_density", ImuNoise.gyro_noise_density, "gyroscope white noise (rad/s/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("gyro_random_walk", ImuNoise.gyro_random_walk, "gyroscope bias random walk (rad/s^2/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("acc_noise_density", ImuNoise.acc_noise_density, "accelerometer white noise (m/s^2/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("acc_random_walk", ImuNoise.acc_random_walk, "accelerometer bias random walk (m/s^3/sqrt(Hz))",
-              range=Range(0, lo_open=True)),
-    ParamSpec("rate_hz", ImuNoise.rate_hz, "nominal IMU rate (Hz), for gap detection", range=Range(0, lo_open=True)),
     ParamSpec("gap_factor", 2.5, "an IMU interval longer than this many nominal periods is reported as a gap",
               range=Range(1, lo_open=True)),
     ParamSpec("buffer_s", 30.0, "IMU history kept (s)", range=Range(0, lo_open=True)),
@@ -85,6 +76,7 @@ PARAMS = [
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
     ParamSpec("torch_threads", 1, "torch CPU threads of this process", range=Range(1)),
 ]
+PARAMS += dataclass_specs(ImuNoise)   # gyro_noise_density, ..., rate_hz (vigs_core.types.ImuNoise)
 
 
 class ImuPreintegrationNode(VigsNode):
