@@ -179,6 +179,16 @@ def test_vigs_run_rejects_bad_params_in_one_line_naming_file_and_key(tmp_path, c
     assert err.startswith(f"vigs run: bad --params: {bad}: ") and says in err and err.count("\n") == 1, err
 
 
+@pytest.mark.parametrize("option, value, says", [
+    ("--stride", "0", "parameter frame_stride: expected a value in [1, inf), got 0"),
+    ("--max-frames", "-5", "parameter max_frames: expected a value in [0, inf), got -5"),
+])
+def test_vigs_run_checks_its_options_as_parameters(tmp_path, capsys, option, value, says):
+    assert vigs_main(["run", str(tmp_path), option, value, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"vigs run: bad {option}: ") and says in err and err.count("\n") == 1, err
+
+
 def test_vigs_run_rejects_bad_input(tmp_path):
     assert vigs_main(["run", str(tmp_path / "missing"), "--no-progress"]) == 2
 

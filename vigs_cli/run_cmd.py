@@ -29,19 +29,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vigs_core.system import load_config, run_pipeline
+    from vigs_core.system import apply_overrides, load_config, run_pipeline
 
     try:
         cfg = load_config(args.params)
     except (KeyError, OSError, ValueError) as err:
         print(f"vigs run: bad --params: {err}", file=sys.stderr)
         return 2
-    if args.max_frames is not None:
-        cfg.max_frames = args.max_frames
-    if args.stride is not None:
-        cfg.frame_stride = args.stride
-    if args.image_topic is not None:
-        cfg.image_topic = args.image_topic
+    options = {"max_frames": ("--max-frames", args.max_frames), "frame_stride": ("--stride", args.stride),
+               "image_topic": ("--image-topic", args.image_topic)}
+    for key, (option, value) in options.items():
+        if value is None:
+            continue
+        try:   # checked like a parameter file's value (type and range)
+            apply_overrides(cfg, {key: value})
+        except ValueError as err:
+            print(f"vigs run: bad {option}: {err}", file=sys.stderr)
+            return 2
     schedule = None
     if args.frames_from is not None:
         from vigs_core.io import read_frame_schedule
