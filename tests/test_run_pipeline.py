@@ -120,7 +120,8 @@ def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
     assert traj.shape == (N, 8)
     assert np.loadtxt(out / "keyframes.txt").shape[0] == report["keyframes"]
     assert np.loadtxt(out / "trajectory_cam.txt").shape == (N, 8)
-    assert "ate_rmse" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "ate_rmse" in out_text and "report.html" in out_text.splitlines()[-1]
 
 
 def test_vigs_run_with_loop_closure_in_its_worker_process(sequence, tmp_path):
@@ -319,6 +320,13 @@ def test_inputs_without_imu_or_recognisable_layout_are_named(sequence, tmp_path,
     write_asl(tmp_path / "seq", t_ns[:3], images[:3], T_WC[:3])
     with pytest.warns(MissingImuWarning, match="vision only"):
         assert open_input(tmp_path / "seq").imu is None
+    # three frames give no pose: the outputs are written, the report page is not, and the summary says so
+    with pytest.warns(MissingImuWarning):
+        assert vigs_main(["run", str(tmp_path / "seq"), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    captured = capsys.readouterr()
+    wrote = captured.out.splitlines()[-1]
+    assert wrote.startswith("wrote ") and "report.json" in wrote and "report.html" not in wrote, wrote
+    assert "report.html not written" in captured.err and not (tmp_path / "out" / "report.html").exists()
     (tmp_path / "empty").mkdir()
     assert vigs_main(["run", str(tmp_path / "empty"), "--no-progress"]) == 2
     assert "neither an EuRoC ASL folder (with mav0/) nor a ROS bag" in capsys.readouterr().err

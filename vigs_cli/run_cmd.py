@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 HELP = "run the in-process pipeline on an EuRoC ASL folder or a ROS bag; write trajectories and a report"
 
@@ -65,7 +66,9 @@ def run(args: argparse.Namespace) -> int:
     acc = report.get("accuracy", {})
     summary.update({k: acc[k] for k in ("ate_rmse", "recall@0.1", "scale") if k in acc})
     print(json.dumps(summary))
-    print(f"wrote {args.out}/trajectory.txt, trajectory_cam.txt, odometry.txt, keyframes.txt, frame_status.txt, "
-          "report.json, report.html")
+    names = ("trajectory.txt", "trajectory_cam.txt", "odometry.txt", "keyframes.txt", "frame_status.txt", "report.json",
+             "report.html", "map.ply")
+    written = [n for n in names if (Path(args.out) / n).is_file()]   # report.html fails apart (a warning above)
+    print(f"wrote {args.out}/{', '.join(written)}")
     # interrupted: the outputs are written, the exit code is the shell's for the signal (128 + its number)
     return {"SIGINT": 130, "SIGTERM": 143}.get(report.get("interrupted"), 0)
