@@ -99,6 +99,19 @@ def test_malformed_imu_csv(tmp_path, rows, line, fragment):
     assert fragment in str(info.value)
 
 
+def test_non_finite_imu_samples_are_left_out_with_a_warning(tmp_path):
+    """A driver's invalid sample (nan / inf) is dropped, as the IMU node drops such a message; the other rows keep
+    their own stamps; an unparsable value is still an error (test above)."""
+    from vigs_core.io.text_table import SkippedRowsWarning
+
+    path = tmp_path / "data.csv"
+    path.write_text("#t\n1000,1,1,1,1,1,1\n2000,2,2,nan,2,2,2\n3000,3,3,3,3,3,3\n4000,4,4,4,inf,4,4\n5000,5,5,5,5,5,5\n")
+    with pytest.warns(SkippedRowsWarning, match=r"2 rows with a non-finite value left out \(lines 3, 5\)"):
+        imu = read_euroc_imu(path)
+    np.testing.assert_array_equal(imu.t_ns, [1000, 3000, 5000])
+    np.testing.assert_array_equal(imu.gyro[:, 0], [1, 3, 5])
+
+
 def test_unsorted_rows_are_sorted(tmp_path):
     path = tmp_path / "data.csv"
     path.write_text("#t\n3000,3,3,3,3,3,3\n1000,1,1,1,1,1,1\n2000,2,2,2,2,2,2\n")

@@ -127,6 +127,18 @@ def test_figures_without_their_data_are_left_out_saying_why(tmp_path):
     assert any("Time per frame by stage: left out: no report.json" in r for r in reasons)
 
 
+def test_a_run_too_short_for_a_keyframe_is_still_reported(tmp_path):
+    """vigs run writes empty keyframes.txt and velocity.txt when no keyframe was made: the page is written without
+    the keyframe figure, saying why."""
+    gt = groundtruth()
+    run = write_run(tmp_path / "run", gt, vio=False)
+    (run / "keyframes.txt").write_text("# timestamp[s] tx ty tz qx qy qz qw\n")
+    (run / "velocity.txt").write_text("")
+    page = write_run_report(run, gt)
+    assert "keyframes.png" not in {f.name for f in page_figures(page)}
+    assert any("keyframes" in r for r in omitted(page)), omitted(page)
+
+
 def test_vigs_eval_html_overlays_several_runs_and_keeps_the_single_run_output(tmp_path):
     gt = groundtruth()
     gt_file = tmp_path / "gt.txt"

@@ -41,6 +41,7 @@ from matplotlib.figure import Figure
 from vigs_core.eval.association import associate
 from vigs_core.eval.report import AlignedEstimate, align_estimate, evaluate_trajectory, recall_key
 from vigs_core.io import read_trajectory, read_tum
+from vigs_core.io.text_table import data_lines
 from vigs_core.types import Trajectory
 
 _KEYFRAME_MAX_DIFF_NS = 1_000_000   # keyframe stamps are frame stamps: paired with the trajectory within 1 ms
@@ -96,12 +97,17 @@ def load_run(trajectory_path: str | Path, label: str | None = None) -> RunOutput
     if not report.is_file():
         report = folder / "frontend_report.json"
     velocity = None
-    if (folder / "velocity.txt").is_file():
+    if _has_rows(folder / "velocity.txt"):
         rows = np.loadtxt(folder / "velocity.txt", ndmin=2)
         velocity = (rows[:, 0], rows[:, 1:4])
     return RunOutputs(label or str(path), read_trajectory(path),
-                      read_tum(keyframes).t_ns if keyframes.is_file() else None,
+                      read_tum(keyframes).t_ns if _has_rows(keyframes) else None,
                       json.loads(report.read_text()) if report.is_file() else None, velocity)
+
+
+def _has_rows(path: Path) -> bool:
+    """The file exists and has a data row (a run too short for a keyframe writes an empty keyframes.txt)."""
+    return path.is_file() and next(data_lines(path), None) is not None
 
 
 @dataclass

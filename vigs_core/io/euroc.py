@@ -47,8 +47,10 @@ GROUNDTRUTH_LAYOUT = (
 
 def read_euroc_imu(csv: str | Path, recorded_order: bool = False) -> ImuSamples:
     """Read an EuRoC ``imu0/data.csv`` into :class:`ImuSamples`, sorted by stamp (a repeated stamp is an error);
-    with ``recorded_order`` the rows as the file has them (for checks that count disordered stamps)."""
-    t_ns, values, lines = read_stamped_rows(csv, (7,), "comma", "ns", IMU_LAYOUT)
+    with ``recorded_order`` the rows as the file has them (for checks that count disordered stamps). A sample with
+    a non-finite value is left out with a warning, as the IMU node drops such a message: the stream then has a gap
+    there, which the estimator handles as any other."""
+    t_ns, values, lines = read_stamped_rows(csv, (7,), "comma", "ns", IMU_LAYOUT, skip_nonfinite=True)
     order = np.arange(len(t_ns)) if recorded_order else stamp_order(csv, t_ns, lines)
     return ImuSamples(t_ns[order], values[order, 0:3], values[order, 3:6])
 

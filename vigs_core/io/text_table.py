@@ -18,6 +18,10 @@ _WHITESPACE_OR_COMMA = re.compile(r"[,\s]+")
 _NS_PER_S = Decimal(1_000_000_000)
 
 
+class SkippedRowsWarning(UserWarning):
+    """Rows of a text table left out (:func:`read_stamped_rows` ``skip_nonfinite``)."""
+
+
 class MalformedFileError(ValueError):
     """A text file that does not have the expected layout.
 
@@ -93,6 +97,7 @@ def read_stamped_rows(
     separator: str,
     stamp: str,
     layout: str,
+    skip_nonfinite: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read a table whose first column is a stamp and whose other columns are finite floats.
 
@@ -103,6 +108,8 @@ def read_stamped_rows(
         separator: ``"comma"`` or ``"whitespace_or_comma"`` (see :func:`split_fields`).
         stamp: ``"ns"`` (integer nanoseconds, EuRoC) or ``"s"`` (decimal seconds, TUM).
         layout: human-readable column list used in error messages.
+        skip_nonfinite: a row whose values parse but are not all finite (``nan``, ``inf``: a sensor driver's
+            invalid sample) is left out with a :class:`SkippedRowsWarning` naming the lines, instead of an error.
 
     Returns:
         ``t_ns`` (N,) int64, ``values`` (N, C-1) float64 and ``line_numbers`` (N,) int64 (1-based line
@@ -114,6 +121,7 @@ def read_stamped_rows(
     stamps: list[int] = []
     rows: list[list[float]] = []
     numbers: list[int] = []
+    skipped: list[int] = []
     n_columns = None
     unit = "integer nanoseconds" if stamp == "ns" else "decimal seconds"
     for number, text in data_lines(path):
@@ -130,7 +138,7 @@ def read_stamped_rows(
                 path, number, f"expected {n_columns} columns like the first data row ({layout}), found {len(fields)}"
             )
         try:
-            stamps.append(int(fields[0]) if stamp == "ns" else seconds_to_ns(fields[0]))
+            t = int(fields[0]) if stamp == "ns" else seconds_to_ns(fields[0])
         except ValueError:
             raise MalformedFileError(
                 path, number, f"column 1 (time stamp) must be {unit}, found '{fields[0]}'"
@@ -140,14 +148,22 @@ def read_stamped_rows(
         except ValueError:
             values = []
         if len(values) != n_columns - 1 or not all(map(math.isfinite, values)):
+            if skip_nonfinite and len(values) == n_columns - 1:
+                skipped.append(number)
+                continue
             column = next(i for i, field in enumerate(fields[1:], start=2) if not _is_finite_float(field))
             raise MalformedFileError(
                 path, number, f"column {column} must be a finite number ({layout}), found '{fields[column - 1]}'"
             )
+        stamps.append(t)
         rows.append(values)
         numbers.append(number)
     if n_columns is None:
         raise MalformedFileError(path, 0, f"no data rows; expected lines of {layout}")
+    if skipped:
+        shown = ", ".join(map(str, skipped[:5])) + (", ..." if len(skipped) > 5 else "")
+        warnings.warn(f"{path}: {len(skipped)} rows with a non-finite value left out (lines {shown})",
+                      SkippedRowsWarning, stacklevel=2)
     values_array = np.array(rows, dtype=np.float64).reshape(len(rows), n_columns - 1)
     return np.array(stamps, dtype=np.int64), values_array, np.array(numbers, dtype=np.int64)
 
