@@ -201,6 +201,11 @@ def test_warns_on_gaps_out_of_order_and_duplicates():
     dup = ImuSamples(np.insert(t, 30, t[30]), np.zeros((len(t) + 1, 3)), np.tile([0, 0, 9.81], (len(t) + 1, 1)))
     with pytest.warns(ImuDataWarning, match="duplicated"):
         preintegrate(dup, 50_000_000, 300_000_000, noise)
+    bad_acc = imu.acc.copy()
+    bad_acc[30, 2] = np.nan   # a driver's invalid reading: dropped, the constant signal is bridged exactly
+    with pytest.warns(ImuDataWarning, match="1 sample.* non-finite value; dropped"):
+        pre = preintegrate(ImuSamples(imu.t_ns, imu.gyro, bad_acc), 50_000_000, 300_000_000, noise)
+    assert torch.allclose(pre.delta_v, torch.tensor([0, 0, 9.81 * 0.25], dtype=torch.float64), atol=1e-12)
 
 
 def test_rejects_intervals_outside_the_samples():

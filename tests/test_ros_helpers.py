@@ -77,6 +77,9 @@ def test_imu_buffer_rejects_disorder_reports_gaps_and_brackets():
     assert buf.add(5_000_000, np.ones(3), np.zeros(3)) is None
     assert "older than the previous" in buf.add(4_000_000, np.zeros(3), np.zeros(3))
     assert "duplicates" in buf.add(5_000_000, np.zeros(3), np.zeros(3))
+    assert "non-finite value: dropped" in buf.add(6_000_000, np.array([0.0, np.nan, 0.0]), np.zeros(3))
+    assert "non-finite value: dropped" in buf.add(7_000_000, np.zeros(3), np.array([np.inf, 0.0, 0.0]))
+    assert buf.latest_ns == 5_000_000 and np.isfinite(buf.all().gyro).all()
     assert "IMU gap of 20.0 ms" in buf.add(25_000_000, np.zeros(3), np.zeros(3))
     for k in range(6, 20):
         buf.add(k * 5_000_000, np.full(3, k), np.zeros(3))

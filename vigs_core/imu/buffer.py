@@ -3,6 +3,7 @@
 :class:`ImuBuffer` keeps the samples in growable NumPy arrays; :meth:`ImuBuffer.all` and
 :meth:`ImuBuffer.samples` return :class:`~vigs_core.types.ImuSamples` views, so the preintegration code reads a
 streamed record exactly as it reads a whole recording. ``add`` validates each sample on arrival: a sample
+with a non-finite value (a driver's invalid reading) is rejected before it can reach a preintegration, a sample
 that is not newer than the previous one is rejected (never re-sorted into the past), a longer interval than
 ``gap_factor`` nominal periods is reported as a gap. A sample more than ``max_jump_s`` after the previous one
 is held until the next sample tells a gap (it follows the held one: both are kept) from an outlier stamp
@@ -76,9 +77,11 @@ class ImuBuffer:
 
     def add(self, t_ns: int, gyro: np.ndarray, acc: np.ndarray) -> str | None:
         """Append one sample. Returns None if accepted without remark, else a warning text: the sample is
-        dropped when out of order or duplicated, kept when it follows a gap, held when far ahead (module
-        docstring)."""
+        dropped when not finite, out of order or duplicated, kept when it follows a gap, held when far ahead
+        (module docstring)."""
         t_ns = int(t_ns)
+        if not (np.isfinite(gyro).all() and np.isfinite(acc).all()):
+            return f"IMU sample at {t_ns} ns has a non-finite value: dropped"
         remarks = []
         if self._held is not None:
             held, self._held = self._held, None

@@ -69,19 +69,26 @@ def find_stream_defects(t_ns: np.ndarray, rate_hz: float | None = None, gap_fact
 
 
 def ordered_samples(imu: ImuSamples) -> ImuSamples:
-    """``imu`` itself when its stamps increase strictly, else :func:`sanitize_samples` of it (with warnings)."""
-    if len(imu) > 1 and np.any(np.diff(imu.t_ns) <= 0):
+    """``imu`` itself when its stamps increase strictly and its values are finite, else :func:`sanitize_samples` of
+    it (with warnings)."""
+    finite = np.isfinite(imu.gyro).all() and np.isfinite(imu.acc).all()
+    if not finite or (len(imu) > 1 and np.any(np.diff(imu.t_ns) <= 0)):
         return sanitize_samples(imu)
     return imu
 
 
 def sanitize_samples(imu: ImuSamples, rate_hz: float | None = None, gap_factor: float = 1.5) -> ImuSamples:
-    """Return the samples sorted by stamp with repeated stamps dropped (first kept), warning on every defect.
+    """Return the finite samples sorted by stamp with repeated stamps dropped (first kept), warning on every defect.
 
-    Issues :class:`ImuDataWarning` for out-of-order stamps, duplicated stamps and gaps longer than
-    ``gap_factor`` nominal periods (integration bridges a gap with the linear signal model, which is
-    only as good as the motion is smooth).
+    Issues :class:`ImuDataWarning` for samples with a non-finite value (dropped), out-of-order stamps, duplicated
+    stamps and gaps longer than ``gap_factor`` nominal periods (integration bridges a gap with the linear signal
+    model, which is only as good as the motion is smooth).
     """
+    finite = np.isfinite(imu.gyro).all(axis=1) & np.isfinite(imu.acc).all(axis=1)
+    if not finite.all():
+        warnings.warn(f"IMU stream has {int((~finite).sum())} sample(s) with a non-finite value; dropped",
+                      ImuDataWarning, stacklevel=2)
+        imu = ImuSamples(imu.t_ns[finite], imu.gyro[finite], imu.acc[finite])
     defects = find_stream_defects(imu.t_ns, rate_hz, gap_factor)
     if defects.out_of_order:
         warnings.warn(f"IMU stream has {defects.out_of_order} out-of-order stamp(s); samples are re-sorted",
@@ -122,8 +129,9 @@ def interval_measurements(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The piecewise-constant measurement sequence integrated from ``t0_ns`` to ``t1_ns`` (see module doc).
 
-    The samples bracketing the interval must be strictly increasing; when they are not, the stream is
-    sanitised (:func:`sanitize_samples`, with a warning) and used sorted. Gaps inside the bracket warn.
+    The samples bracketing the interval must be strictly increasing and finite; when they are not, the stream is
+    sanitised (:func:`sanitize_samples`, with a warning) and used sorted, without the non-finite samples. Gaps
+    inside the bracket warn.
 
     Args:
         imu: samples covering ``[t0_ns, t1_ns]`` (a sample at or before ``t0`` and at or after ``t1``).
@@ -141,7 +149,8 @@ def interval_measurements(
     t = imu.t_ns
     lo = max(int(np.searchsorted(t, t0_ns, side="right")) - 1, 0)
     hi = min(int(np.searchsorted(t, t1_ns, side="left")) + 1, len(t))
-    if np.any(np.diff(t[max(lo - 1, 0):hi + 1]) <= 0):  # the bracket and one sample either side
+    disordered = np.any(np.diff(t[max(lo - 1, 0):hi + 1]) <= 0)   # the bracket and one sample either side
+    if disordered or not (np.isfinite(imu.gyro[lo:hi]).all() and np.isfinite(imu.acc[lo:hi]).all()):
         imu = sanitize_samples(imu, rate_hz, gap_factor)
         t = imu.t_ns
         lo = max(int(np.searchsorted(t, t0_ns, side="right")) - 1, 0)
