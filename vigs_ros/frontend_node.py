@@ -178,9 +178,7 @@ PARAMS = [
 # loop detector's, and the viewer node's rerun settings)
 PIPELINE_PARAMS = dataclass_specs(PipelineConfig, skip=("loop", "rerun"))
 PARAMS += PIPELINE_PARAMS
-# /odometry's covariance model (vigs_core.vio.odometry_covariance)
-COVARIANCE_PARAMS = dataclass_specs(OdometryCovarianceConfig, "odometry_covariance.")
-PARAMS += COVARIANCE_PARAMS
+PARAMS += dataclass_specs(OdometryCovarianceConfig, "odometry_covariance.")   # /odometry's covariance model
 PARAMS += dataclass_specs(ImuNoise)   # gyro_noise_density, ..., rate_hz (vigs_core.types.ImuNoise)
 
 
@@ -211,8 +209,7 @@ class FrontendNode(VigsNode):
         self.engine: FrontendEngine | None = None
         self.realigned_at_ns: int | None = None
         self.frames = Rep105Frames()
-        self.covariance = OdometryCovariance(build_config(OdometryCovarianceConfig(), {
-            s.name: self.p[s.name] for s in COVARIANCE_PARAMS}, "odometry_covariance."))
+        self.covariance = OdometryCovariance(build_config(OdometryCovarianceConfig(), self.p, "odometry_covariance."))
         self.path_changed = False   # keyframes moved or were added since the path was last published
         self.path_published = -math.inf   # when (monotonic s)
         self.after_correction = False   # a loop correction was applied since the last published pose

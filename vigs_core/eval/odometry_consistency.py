@@ -4,8 +4,7 @@ The camera-rate odometry's pose drifts from where metric tracking started (REP-1
 estimate itself defines), so its error is measured the way a consumer sees it: the ground truth is moved rigidly
 onto the estimate's pose at the first metric frame, and each later metric frame's position error (m) and rotation
 error ``Log(R_est R_gt^T)`` (rad; about x and y the tilt, about z the yaw in a gravity-aligned frame) are taken
-against it, in the estimate's frame. The
-normalised estimation error squared, ``e^T S^-1 e`` per frame, should average the degrees of freedom when the
+against it, in the estimate's frame. The normalised estimation error squared, ``e^T S^-1 e`` per frame, should average the degrees of freedom when the
 covariance ``S`` is consistent (Bar-Shalom, "Estimation with Applications to Tracking", 5.4).
 """
 from __future__ import annotations
@@ -36,11 +35,6 @@ class DriftErrors:
     rotation_error: np.ndarray
 
 
-def _rotations(traj: Trajectory, idx: np.ndarray) -> Rotation:
-    q = traj.quat_wxyz[idx]
-    return Rotation.from_quat(np.concatenate((q[:, 1:], q[:, :1]), axis=1))
-
-
 def drift_errors(gt: Trajectory, est: Trajectory, metric: np.ndarray, max_diff_s: float = 0.02) -> DriftErrors:
     """Errors of ``est``'s frames where ``metric`` (N,) bool is set, against ``gt`` anchored rigidly at the first
     of them (module docstring); pairs by stamp within ``max_diff_s``."""
@@ -50,7 +44,8 @@ def drift_errors(gt: Trajectory, est: Trajectory, metric: np.ndarray, max_diff_s
         raise ValueError("drift_errors: no metric frame of the estimate has a ground-truth pose")
     order = np.argsort(est.t_ns[keep][i_k], kind="stable")
     i_gt, i_est = i_gt[order], keep[i_k[order]]
-    R_est, R_gt = _rotations(est, i_est), _rotations(gt, i_gt)
+    R_est = Rotation.from_matrix(est.matrices()[i_est, :3, :3])
+    R_gt = Rotation.from_matrix(gt.matrices()[i_gt, :3, :3])
     A = R_est[0] * R_gt[0].inv()   # the rotation taking the ground truth's attitude at the anchor onto the estimate's
     p_gt = A.apply(gt.position[i_gt] - gt.position[i_gt[0]]) + est.position[i_est[0]]
     return DriftErrors(t_ns=est.t_ns[i_est], position=est.position[i_est],

@@ -95,10 +95,14 @@ def detect_static_segments(imu: ImuSamples, config: StaticDetectorConfig | None 
     starts = np.flatnonzero(still)
     np.add.at(covered, starts, 1)
     np.add.at(covered, starts + n, -1)
-    mask = np.cumsum(covered[:-1]) > 0
+    return _runs(imu.t_ns, np.cumsum(covered[:-1]) > 0, cfg.min_duration_s)
+
+
+def _runs(t_ns: np.ndarray, mask: np.ndarray, min_duration_s: float) -> np.ndarray:
+    """(S, 2) int64 ``(first, last)`` stamps of the maximal runs of ``mask`` lasting at least ``min_duration_s``."""
     edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
-    segments = [(imu.t_ns[a], imu.t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
-    keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= cfg.min_duration_s]
+    segments = [(t_ns[a], t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+    keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= min_duration_s]
     return np.array(keep, dtype=np.int64).reshape(-1, 2)
 
 
@@ -137,11 +141,7 @@ def still_segments_from_motion(gt: Trajectory, config: MotionStillConfig | None 
     q = gt.quat_wxyz
     dots = np.abs((q[hi] * q[lo]).sum(1)).clip(max=1.0)
     rate = 2 * np.arccos(dots) / dt
-    still = (speed <= cfg.max_speed) & (rate <= cfg.max_rate)
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], still.astype(np.int8), [0]))))
-    segments = [(gt.t_ns[a], gt.t_ns[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
-    keep = [(a, b) for a, b in segments if (b - a) * 1e-9 >= cfg.min_duration_s]
-    return np.array(keep, dtype=np.int64).reshape(-1, 2)
+    return _runs(gt.t_ns, (speed <= cfg.max_speed) & (rate <= cfg.max_rate), cfg.min_duration_s)
 
 
 def static_initialize(imu: ImuSamples, t0_ns: int, t1_ns: int) -> StaticInit:

@@ -13,8 +13,9 @@ documented model instead, checked against the actual error by NEES
 with ``r`` the distance from the first metric frame's position (an error of the metric scale moves every
 position in proportion to it) and ``d`` the path length travelled while metric since then (the drift that
 accumulates with motion, as VIO drift is usually reported). Roll and pitch are observable from gravity, so their
-error against the attitude at the first metric frame stays bounded; yaw and position are not observable. The defaults are calibrated on the causal odometry of the hybrid sequences
-(``vigs bench odometry_covariance``; docs/benchmarks.md).
+error against the attitude at the first metric frame stays bounded; yaw and position are not observable. The
+defaults are calibrated on the causal odometry of the hybrid sequences (``vigs bench odometry_covariance``;
+docs/benchmarks.md).
 """
 from __future__ import annotations
 
