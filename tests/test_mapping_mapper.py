@@ -196,7 +196,7 @@ def test_inbox_folds_pose_corrections_and_corrects_queued_keyframes_in_place():
     inbox = MapperInbox()
     eye = torch.eye(4, dtype=torch.float64)
     T1, T2, Ta = (se3_exp(torch.full((6,), x, dtype=torch.float64)) for x in (0.1, 0.2, 0.3))
-    queued = SimpleNamespace(id=1, T_WC=eye, depth=torch.ones(2, 2))
+    queued = SimpleNamespace(id=1, T_WC=eye, depth_scale=1.0)
     inbox.put_keyframe(queued)
     for _ in range(50):
         inbox.put_poses({0: T1, 1: Ta}, {0: 2.0, 1: 0.5})
@@ -208,7 +208,7 @@ def test_inbox_folds_pose_corrections_and_corrects_queued_keyframes_in_place():
     inbox.done()
     kind, kf = inbox.take()
     assert kind == "keyframe" and kf is queued
-    assert torch.equal(kf.T_WC, Ta) and torch.allclose(kf.depth, torch.full((2, 2), 0.5 ** 50))
+    assert torch.equal(kf.T_WC, Ta) and kf.depth_scale == pytest.approx(0.5 ** 50)
     inbox.done()
     assert inbox.take(timeout=0.01) is None and len(inbox) == 0
 
@@ -302,3 +302,25 @@ def test_readers_get_the_map_while_the_mapper_refines_when_idle():
     finally:
         mapper.stop()
     assert max(waits) < 1.0, waits
+
+
+def test_keyframes_spilled_to_disk_give_the_same_map(tmp_path):
+    """The keyframe store keeps two keyframes in memory and reads the rest back from disk: the schedule's
+    global keyframes, a pose and scale correction and a refinement give exactly the map of a mapper that keeps
+    everything in memory."""
+    from vigs_core.spill import SpillConfig
+
+    maps = []
+    for resident in (0, 2):
+        mapper = _mapper(iterations=4, keyframe_store=SpillConfig(resident=resident, directory=str(tmp_path)))
+        _feed(mapper, [0.0, 0.2, 0.4, 0.6, 0.8])
+        mapper.process_pending()
+        mapper.update_keyframe_poses({1: orbit_pose(0.21)}, {1: 1.1})
+        mapper.process_pending()
+        mapper.refine(6)
+        assert mapper._pixels.resident_count == (5 if resident == 0 else 2)
+        assert (mapper._pixels.reads > 0) == (resident > 0)
+        depth = torch.as_tensor(raycast(orbit_pose(0.2), CAMERA)[1]).float()
+        assert torch.allclose(mapper.keyframes[1].depth, 1.1 * depth.where(torch.isfinite(depth), 0.0), atol=1e-5)
+        maps.append(mapper.map)
+    assert torch.equal(maps[0].means, maps[1].means) and torch.equal(maps[0].colors, maps[1].colors)

@@ -11,7 +11,7 @@ keyframes queued plus one correction batch.
 A live mapper that cannot keep up must not fall further and further behind the robot: with a ``capacity``, the
 queue keeps the newest keyframes and moves the oldest aside ("deferred"); they are handed out only when nothing
 else waits (the robot idle, or the shutdown drain), newest first. Deferred keyframes cost the memory a mapped
-keyframe costs (the mapper keeps every keyframe's image and depth), and are counted.
+keyframe costs (the mapper's keyframe store), and are counted.
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ class MapperInbox:
         self._busy = 0
 
     def put_keyframe(self, kf: Any) -> None:
-        """Queue a keyframe (an object with ``id``, ``T_WC`` (4, 4) and ``depth``)."""
+        """Queue a keyframe (an object with ``id``, ``T_WC`` (4, 4) and ``depth_scale``)."""
         with self._cond:
             self._keyframes.append(kf)
             while self.capacity and len(self._keyframes) > self.capacity:
@@ -61,8 +61,7 @@ class MapperInbox:
                 kf = waiting.get(k)
                 if kf is not None:           # not inserted yet: insert it where it is now
                     kf.T_WC = T
-                    if s != 1.0:
-                        kf.depth = kf.depth * s
+                    kf.depth_scale *= s
                     continue
                 self._poses[k] = T
                 if s != 1.0:

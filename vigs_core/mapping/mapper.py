@@ -53,6 +53,7 @@ from vigs_core.mapping.optimizer import RowAdam
 from vigs_core.mapping.ply import save_map
 from vigs_core.mapping.rasterizer import RenderCamera, RenderOutput, RenderSettings, frustum_rows, make_rasterizer
 from vigs_core.ranges import bounded
+from vigs_core.spill import SpillConfig, SpillStore
 
 
 @dataclass
@@ -89,6 +90,8 @@ class MapperConfig:
             keyframe being inserted gets no further optimisation steps. A live mapper that cannot keep up stays
             this far behind the newest keyframe. 0: every keyframe in order with its ``iterations`` however
             long the queue (offline runs).
+        keyframe_store: where the keyframes' pixels live: the most recent in memory, older ones on disk
+            (:class:`vigs_core.spill.SpillStore`); read back when the schedule or a refinement picks them.
         refine_when_idle: the worker thread (:meth:`GaussianMapper.run_async`), when nothing is queued, keeps
             optimising, one step at a time on a keyframe drawn uniformly from the mapped ones, so CPU left
             over improves the map (a live mapper at low priority); off: it waits.
@@ -119,6 +122,7 @@ class MapperConfig:
     retain_heap: bool = True
     max_backlog: int = bounded(0, 0)
     refine_when_idle: bool = False
+    keyframe_store: SpillConfig = field(default_factory=SpillConfig)
 
     def __post_init__(self) -> None:
         if self.iterations < 0 or self.window < 1 or self.global_keyframes < 0 or self.max_backlog < 0:
@@ -135,18 +139,26 @@ _IDLE_PAUSE_S = 0.01   # between idle steps (GaussianMapper._work)
 
 @dataclass
 class Keyframe:
-    """A keyframe as the mapper keeps it: pose (4, 4) float64, ``image_u8`` (h, w, 3) uint8 and ``depth``
-    (h, w) float32 metres (0 where invalid), both at render resolution (uint8 keeps long runs small)."""
+    """A keyframe as the mapper keeps it: pose (4, 4) float64 and its pixels in the mapper's :class:`SpillStore`
+    under its id, at render resolution: RGB (h, w, 3) uint8 and depth (h, w) float32 metres (0 where invalid),
+    the stored depth times ``depth_scale`` (loop corrections rescale it without rewriting the pixels). The store
+    keeps the most recent keyframes in memory and the rest on disk, so long runs stay small."""
 
     id: int
     T_WC: torch.Tensor
-    image_u8: torch.Tensor
-    depth: torch.Tensor
+    pixels: SpillStore
+    device: torch.device
     timestamp_ns: int | None = None
+    depth_scale: float = 1.0
 
     def image(self) -> torch.Tensor:
         """(h, w, 3) float32 RGB in [0, 1]."""
-        return self.image_u8.to(self.depth.dtype) / 255.0
+        return torch.from_numpy(self.pixels.get(self.id)[0]).to(self.device, torch.float32) / 255.0
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """(h, w) float32 metres (a new tensor)."""
+        return torch.from_numpy(self.pixels.get(self.id)[1]).to(self.device) * self.depth_scale
 
 
 @dataclass
@@ -269,6 +281,7 @@ class GaussianMapper:
         )
         self.map = GaussianMap.empty(device=self.device)
         self.keyframes: dict[int, Keyframe] = {}
+        self._pixels = SpillStore(self.config.keyframe_store, "mapper-keyframes")
         self.stats = MapperStats()
         self._next_id = 0
         self._rng = random.Random(c.seed)
@@ -285,13 +298,11 @@ class GaussianMapper:
         """Queue a keyframe: ``T_WC`` (4, 4), ``image`` (H, W[, 3]) uint8 or float [0, 1] RGB/grey, ``depth``
         (H', W') metres (0 or non-finite = invalid; any resolution, resampled to the render size)."""
         size = (self.render_camera.width, self.render_camera.height)
-        kf = Keyframe(
-            int(kf_id),
-            torch.as_tensor(T_WC, dtype=torch.float64).reshape(4, 4).clone(),
-            (_prepare_image(image, size) * 255.0).round_().to(torch.uint8).to(self.device),
-            _prepare_depth(depth, size).to(self.device),
-            timestamp_ns,
-        )
+        kf_id = int(kf_id)
+        self._pixels.put(kf_id, (_prepare_image(image, size) * 255.0).round_().to(torch.uint8).cpu().numpy(),
+                         _prepare_depth(depth, size).cpu().numpy())
+        kf = Keyframe(kf_id, torch.as_tensor(T_WC, dtype=torch.float64).reshape(4, 4).clone(), self._pixels,
+                      self.device, timestamp_ns)
         self._inbox.put_keyframe(kf)
 
     def update_keyframe_poses(self, poses: dict[int, object], scales: dict[int, float] | None = None) -> None:
@@ -602,5 +613,5 @@ class GaussianMapper:
             for k, T in known.items():
                 kf = self.keyframes[k]
                 kf.T_WC = T
-                kf.depth = kf.depth * known_scales.get(k, 1.0)
+                kf.depth_scale *= known_scales.get(k, 1.0)
             self.stats.pose_updates += 1
