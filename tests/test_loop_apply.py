@@ -16,6 +16,7 @@ from vigs_core.frontend.odometry import DenseOdometry, Keyframe, _Frame  # the r
 from vigs_core.geometry import se3_inverse, sim3_act, sim3_exp
 from vigs_core.loop import (LoopClosure, LoopClosureDriver, LoopConfig, LoopEdge, apply_to_odometry,
                             corrected_pose, corrections_for)
+from vigs_core.loop.config import LoopDetectionConfig
 from vigs_core.loop.driver import keyframe_views
 from vigs_core.loop.process import LoopClosureProcess
 from vigs_core.solver import Intrinsics, pixel_rays
@@ -231,3 +232,40 @@ def test_final_poses_spread_the_next_keyframes_correction_and_follow_a_similarit
     apply_to_odometry(odo, {0: C})
     _, after = odo.final_frame_poses()
     np.testing.assert_allclose(se3_inverse(after)[:, :3, 3].numpy(), sim3_act(C, centres).numpy(), atol=1e-12)
+
+
+def test_the_worker_process_gets_images_once_and_depths_where_detection_reads_them():
+    """Views go to the child when new or changed, the image only with the first; a changed depth only once the
+    keyframe is old enough to be a loop candidate (the window's BA changes young keyframes' depths at every
+    keyframe); the child keeps the depth it has meanwhile."""
+    odo = small_odometry(6)
+    closure = LoopClosureProcess(LoopConfig(detection=LoopDetectionConfig(min_keyframe_gap=3)), GRID,
+                                 DISFlowEstimator(GRID).config, INTR)
+    posted = []
+    post = closure._post
+    closure._post = lambda msg: (posted.append(msg), post(msg))
+    views = keyframe_views([odo.keyframes[k] for k in range(6)], [1.0] * 6)
+    history = []
+    for k in range(3):
+        closure.add_keyframe(views[k], history)
+        history.append(views[k])
+    sent = [m[1] for m in posted if m[0] == "views"]
+    assert [[(v[0], v[2] is not None, v[4] is not None) for v in batch] for batch in sent] == \
+        [[(0, True, True)], [(1, True, True)], [(2, True, True)]]
+    # BA changed keyframes 0 and 2 (it replaces pose and disparities): at new keyframe 3 only 0 is a candidate
+    for k in (0, 2):
+        odo.keyframes[k].pose, odo.keyframes[k].disp = odo.keyframes[k].pose.clone(), odo.keyframes[k].disp * 1.01
+    moved = keyframe_views([odo.keyframes[0], odo.keyframes[2]], [1.0, 1.0])
+    history = [moved[0], views[1], moved[1]]
+    posted.clear()
+    closure.add_keyframe(views[3], history)
+    (batch,) = [m[1] for m in posted if m[0] == "views"]
+    assert [(v[0], v[2] is not None, v[4] is not None) for v in batch] == [(0, True, False), (2, False, False),
+                                                                           (3, True, True)]
+    # at keyframe 5, keyframe 2 is old enough: its depth changed since it was last sent, so it goes now
+    posted.clear()
+    closure.add_keyframe(views[5], [*history, views[3]])
+    (batch,) = [m[1] for m in posted if m[0] == "views"]
+    assert [(v[0], v[2] is not None) for v in batch] == [(2, True), (5, True)]
+    closure.wait()
+    closure.close()

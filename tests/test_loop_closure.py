@@ -39,7 +39,7 @@ def test_loop_closure_removes_drift_and_the_map_follows():
     closure = LoopClosure(LoopConfig(asynchronous=True), DISFlowEstimator(GRID), INTR)
     views: list[KeyframeView] = []
     for k in range(N):
-        view = KeyframeView(k, images[k], est[k], depths[k])
+        view = KeyframeView.from_depth(k, images[k], est[k], depths[k])
         info = None
         if k > 0:  # odometry edge covariance from the dense correspondences of the pair, like the frontend's
             z = torch.linalg.inv(est[k - 1]) @ est[k]
@@ -118,7 +118,7 @@ def test_close_can_discard_the_queued_jobs_and_waits_for_the_running_one():
         return None
 
     _, images, depths = circle_sequence(4, W, H, INTR.fx, GRID.stride)
-    views = [KeyframeView(k, images[k], torch.eye(4, dtype=torch.float64), depths[k]) for k in range(4)]
+    views = [KeyframeView.from_depth(k, images[k], torch.eye(4, dtype=torch.float64), depths[k]) for k in range(4)]
     closure.add_keyframe(views[0], [], blocking_information)
     assert started.wait(10)
     for k in range(1, 4):

@@ -1,8 +1,10 @@
 """Loop candidate detection: the vectorised orientation test, and a candidate's flow that does not depend on
 which pairs the detector checked before."""
+import dataclasses
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from loop_synthetic import cast, look, render, room
@@ -10,6 +12,7 @@ from vigs_core.frontend import DISFlowEstimator, PixelGrid
 from vigs_core.geometry import so3_exp
 from vigs_core.loop.detection import KeyframeView, LoopDetector, rotation_angle_deg, rotation_cosines
 from vigs_core.solver import Intrinsics
+from vigs_core.spill import SpillConfig
 
 W, H = 160, 120
 INTR = Intrinsics(100.0, 100.0, 79.5, 59.5)
@@ -19,7 +22,7 @@ GRID = PixelGrid(W, H, 8)
 def view(kf_id: int, yaw_deg: float, position: list[float]) -> KeyframeView:
     T = look(math.radians(yaw_deg), np.asarray(position, dtype=float))
     depth = torch.from_numpy(cast(room(), T, GRID.coords(), INTR, shade=False)[0])
-    return KeyframeView(kf_id, render(room(), T, INTR, W, H), T, depth)
+    return KeyframeView.from_depth(kf_id, render(room(), T, INTR, W, H), T, depth)
 
 
 def test_rotation_cosines_match_the_relative_rotation_angle():
@@ -53,3 +56,22 @@ def test_a_candidates_loop_edge_does_not_depend_on_the_pairs_checked_before():
     assert again.accepted is not None
     assert torch.equal(again.accepted.relative, fresh.accepted.relative)
     assert again.accepted.inlier_fraction == fresh.accepted.inlier_fraction
+
+
+def test_the_detector_keeps_images_of_keyframes_it_has_seen_so_views_need_not(tmp_path):
+    """Views of registered keyframes come without images (the callers drop them to bound memory): the detector
+    uses the images it kept when they were new, read back from disk when spilled, with the same result."""
+    torch.set_num_threads(1)
+    old, new = view(0, 30.0, [0.3, 0.2, 1.5]), view(100, 36.0, [0.4, 0.15, 1.45])
+    fresh = LoopDetector(DISFlowEstimator(GRID), INTR).detect(new, [old])
+    spilling = LoopDetector(DISFlowEstimator(GRID), INTR, images=SpillConfig(resident=1, directory=str(tmp_path)))
+    spilling.detect(old, [])                                   # old seen as new: its image kept
+    spilling.detect(view(50, -60.0, [0.2, -0.5, 1.5]), [])      # another one: old's image goes to disk
+    assert spilling._images.writes >= 1
+    again = spilling.detect(new, [dataclasses.replace(old, image=None)])
+    assert again.accepted is not None and torch.equal(again.accepted.relative, fresh.accepted.relative)
+    with pytest.raises(KeyError):                              # a view never seen needs its image
+        spilling.detect(view(200, 30.0, [0.3, 0.2, 1.5]), [dataclasses.replace(view(1, 30.0, [0.3, 0.2, 1.5]),
+                                                                                  image=None)])
+    spilling.close()
+    assert list(tmp_path.iterdir()) == []

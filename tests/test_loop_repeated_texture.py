@@ -41,7 +41,7 @@ def test_repeated_texture_without_revisit_gives_no_loop():
     views: list[KeyframeView] = []
     for k in range(N):
         depth = torch.from_numpy(cast(planes, truth[k], GRID.coords(), INTR, shade=False)[0]) * sigma[k]
-        view = KeyframeView(k, render(planes, truth[k], INTR, W, H), est[k], depth)
+        view = KeyframeView.from_depth(k, render(planes, truth[k], INTR, W, H), est[k], depth)
         closure.add_keyframe(view, views)
         views.append(view)
         assert not closure.start_pgba({v.id: v.T_WC for v in views})

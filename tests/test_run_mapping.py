@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from vigs_core.camera import CameraModel
+from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
 from vigs_core.geometry import se3_inverse
 from vigs_core.mapping import MapperConfig, load_map
 from vigs_core.sim.render import Renderer
@@ -122,10 +123,13 @@ class _FakeOdometry:
         weight[2] = 0.0             # unconfident cell
         self.edges = {(0, 1): _Edge(weight), (1, 0): _Edge(np.ones(24))}
         self.frames = []
+        self.graph = FrameGraph(FrameGraphConfig(window=4))
 
 
 def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch():
     odo = _FakeOdometry()
+    with pytest.raises(ValueError, match="keyframe_delay .4. must be below the frontend's window .4."):
+        OnlineMapping(MappingConfig(keyframe_delay=4), odo, CAM)   # its image would be gone by then
     online = OnlineMapping(MappingConfig(keyframe_delay=1, mapper=MapperConfig(iterations=2)), odo, CAM)
     z = online._depth(0, odo.keyframes[0].disp)
     assert z.shape == (4, 6) and z[0, 0] == 0 and z[0, 1] == 0 and z[0, 2] == 0 and z[0, 3] == pytest.approx(2.0)
@@ -162,7 +166,7 @@ def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
     sampling), not every ``eval_stride``-th frame of it; a short run keeps them all, as before."""
     from types import SimpleNamespace
 
-    odo = SimpleNamespace(keyframes={})
+    odo = SimpleNamespace(keyframes={}, graph=FrameGraph())
     online = OnlineMapping(MappingConfig(eval_stride=2, eval_max_frames=20), odo, CAM)
     try:
         image = np.zeros((H, W), np.uint8)

@@ -100,10 +100,9 @@ class LoopDetectorNode(VigsNode):
                                          f"({grid.rows}, {grid.cols}): ignored")
             return
         disp = torch.as_tensor(kf.disparity.reshape(-1), dtype=F64)
-        depth = torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), torch.zeros_like(disp))
-        view = KeyframeView(kf.id, grey, torch.as_tensor(kf.T_wc, dtype=F64), depth, self.closure.unit(kf.id))
+        view = KeyframeView(kf.id, grey, torch.as_tensor(kf.T_wc, dtype=F64), disp, self.closure.unit(kf.id))
         self.closure.add_keyframe(view, [self.views[k] for k in sorted(self.views)])
-        self.views[kf.id] = view
+        self.views[kf.id] = dataclasses.replace(view, image=None)   # the detector keeps the image (spilled when old)
         self.metric = kf.metric
         self.status.count("keyframes_in")
         self.poll()
@@ -150,7 +149,7 @@ class LoopDetectorNode(VigsNode):
         are snapshots: never edited in place)."""
         view = self.views.get(kf_id)
         if view is not None:
-            self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, depth=view.depth * depth_scale)
+            self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, disp=view.disp / depth_scale)
 
     def close(self) -> None:
         """Stop loop closure without searching the keyframes still queued (nothing would receive the result)."""

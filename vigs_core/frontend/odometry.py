@@ -138,11 +138,13 @@ class OdometryConfig:
 class Keyframe:
     """A keyframe: id, time (ns), grey image (H, W) uint8, pose ``T_cw`` (4, 4) and disparities (P,); ``tracked``:
     the reference keyframe id and the relative pose ``T_cw T_cw(ref)^-1`` (4, 4) its frame was tracked at, when
-    it was made from a tracked frame (module docstring, final poses)."""
+    it was made from a tracked frame (module docstring, final poses). The image is dropped (None) at the first
+    frame after the keyframe left the window: only window keyframes are matched, and loop closure and the mapper
+    took it when the keyframe was new, so a long run does not keep every keyframe's pixels."""
 
     id: int
     t_ns: int
-    image: np.ndarray
+    image: np.ndarray | None
     pose: torch.Tensor
     disp: torch.Tensor
     tracked: tuple[int, torch.Tensor] | None = None
@@ -180,6 +182,7 @@ class DenseOdometry:
         self.graph = FrameGraph(self.config.graph)
         self.coords = torch.from_numpy(self.grid.coords())
         self.keyframes: dict[int, Keyframe] = {}
+        self._left_window: list[int] = []   # keyframes that left the window, images not yet dropped
         self.frames: list[_Frame] = []
         self.edges: dict[tuple[int, int], Correspondences] = {}
         self.initialized = False
@@ -204,6 +207,11 @@ class DenseOdometry:
         (new keyframe, BA) that may follow: a live caller publishes odometry without waiting for the BA. The
         returned pose is the causal one after that work (it differs from the tracked one on keyframes).
         Called during the keyframe work (from ``interleave``), the frame is tracked only (module docstring)."""
+        if not self.in_keyframe_work:   # the callers of the previous frame have taken the new keyframes' images
+            for k in self._left_window:
+                if k in self.keyframes:
+                    self.keyframes[k].image = None
+            self._left_window.clear()
         frame = _Frame(int(t_ns))
         self.frames.append(frame)
         outer, self._on_pose = self._on_pose, on_pose   # a nested frame's callback is its own
@@ -490,7 +498,8 @@ class DenseOdometry:
 
     # ------------------------------------------------------------------ tracking and mapping
     def _insert_into_graph(self, kf: Keyframe) -> list[tuple[int, int]]:
-        new_edges, _ = self.graph.add_keyframe(kf.id, self.predicted_flow)
+        new_edges, left = self.graph.add_keyframe(kf.id, self.predicted_flow)
+        self._left_window += left
         for e in list(self.edges):
             if e not in self.graph.edges:
                 del self.edges[e]

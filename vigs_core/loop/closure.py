@@ -84,7 +84,7 @@ class LoopClosure:
 
     def __init__(self, config: LoopConfig, estimator: CorrespondenceEstimator, intrinsics: Intrinsics) -> None:
         self.config = config
-        self.detector = LoopDetector(estimator, intrinsics, config.detection, config.verification)
+        self.detector = LoopDetector(estimator, intrinsics, config.detection, config.verification, config.images)
         self.graph = KeyframePoseGraph(config.graph)
         self.stats = LoopStats()
         self.decisions: dict[int, LoopDecision] = {}   # new keyframe id -> decision, where there were candidates
@@ -176,6 +176,7 @@ class LoopClosure:
             self._jobs.put(None)
             self._thread.join()
             self._thread = None
+        self.detector.close()
         return discarded
 
     # ------------------------------------------------------------------ worker side

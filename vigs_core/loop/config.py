@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from vigs_core.loop.pose_graph import PoseGraphConfig
 from vigs_core.ranges import bounded
+from vigs_core.spill import SpillConfig
 
 
 @dataclass
@@ -120,6 +121,8 @@ class LoopConfig:
             tracking process (the loop-closure thread's Python work made tracking wait for the interpreter lock);
             used by the in-process pipeline's :class:`~vigs_core.loop.driver.LoopClosureDriver`.
         process_nice: niceness increment of that child process: on a saturated CPU tracking keeps its core.
+        images: where the detector keeps keyframe images for verification (the most recent in memory, older
+            ones spilled to disk: memory does not grow with the number of keyframes).
     """
 
     enabled: bool = True
@@ -130,3 +133,4 @@ class LoopConfig:
     asynchronous: bool = True
     process: bool = True
     process_nice: int = 10
+    images: SpillConfig = field(default_factory=SpillConfig)

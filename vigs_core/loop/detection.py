@@ -36,6 +36,7 @@ from vigs_core.geometry import sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
 from vigs_core.solver import Intrinsics
+from vigs_core.spill import SpillConfig, SpillStore
 
 F64 = torch.float64
 
@@ -46,18 +47,34 @@ class KeyframeView:
 
     Attributes:
         id: keyframe id (increasing with time).
-        image: (H, W) uint8 grey image (undistorted, the frontend's input).
+        image: (H, W) uint8 grey image (undistorted, the frontend's input); None for a keyframe the detector has
+            already seen as new (:meth:`LoopDetector.detect` keeps the image, spilled to disk when old), so the
+            callers' views need not keep it.
         T_WC: (4, 4) float64 current world-from-camera pose estimate (rigid).
-        depth: (P,) float64 depths of the reduced grid pixels, map units (0 = unknown).
+        disp: (P,) disparities (inverse depths) of the reduced grid pixels, inverse map units (<= 0 = unknown):
+            the frontend's own tensor, shared rather than copied (its depths are :attr:`depth`).
         unit: product of the depth scales applied to this keyframe by loop corrections before the view was
             taken (its depth units relative to the original ones; see :meth:`KeyframePoseGraph.build`).
     """
 
     id: int
-    image: np.ndarray
+    image: np.ndarray | None
     T_WC: torch.Tensor
-    depth: torch.Tensor
+    disp: torch.Tensor
     unit: float = 1.0
+
+    @classmethod
+    def from_depth(cls, id: int, image: np.ndarray | None, T_WC: torch.Tensor, depth: torch.Tensor,
+                   unit: float = 1.0) -> "KeyframeView":
+        """The view of a keyframe given by its grid depths (P,) (0 = unknown)."""
+        depth = torch.as_tensor(depth, dtype=F64)
+        return cls(id, image, T_WC, torch.where(depth > 0, 1.0 / depth.clamp_min(1e-12), 0.0), unit)
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """(P,) float64 depths of the grid pixels, map units (0 = unknown)."""
+        disp = self.disp.to(F64)
+        return torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
 
 
 @dataclass
@@ -117,23 +134,34 @@ class LoopDetector:
         estimator: dense correspondence estimator on ``estimator.grid`` (the frontend's, or a separate one).
         intrinsics: pinhole intrinsics of the input images.
         detection, verification: settings.
+        images: where the keyframe images live (memory for the most recent, disk beyond).
     """
 
     def __init__(self, estimator: CorrespondenceEstimator, intrinsics: Intrinsics,
-                 detection: LoopDetectionConfig | None = None, verification: LoopVerificationConfig | None = None):
+                 detection: LoopDetectionConfig | None = None, verification: LoopVerificationConfig | None = None,
+                 images: SpillConfig | None = None):
         self.estimator = estimator
         self.grid: PixelGrid = estimator.grid
         self.intr = intrinsics
         self.detection = detection or LoopDetectionConfig()
         self.verification = verification or LoopVerificationConfig()
         self._thumbs: dict[int, np.ndarray] = {}
+        self._images = SpillStore(images, "loop-images")
         self._coords = self.grid.coords()   # (P, 2) grid pixels: the targets of zero flow
         self._last_loop_kf: int | None = None
 
     def _thumb(self, kf: KeyframeView) -> np.ndarray:
         if kf.id not in self._thumbs:
-            self._thumbs[kf.id] = thumbnail(kf.image, self.detection.thumbnail_size)
+            self._thumbs[kf.id] = thumbnail(self.image(kf), self.detection.thumbnail_size)
         return self._thumbs[kf.id]
+
+    def image(self, kf: KeyframeView) -> np.ndarray:
+        """The view's image, or the one kept when the keyframe was new (KeyError for a keyframe never seen)."""
+        return kf.image if kf.image is not None else self._images.get(kf.id)[0]
+
+    def close(self) -> None:
+        """Drop the kept images (and their spill folder)."""
+        self._images.close()
 
     def candidates(self, new: KeyframeView, history: Sequence[KeyframeView]) -> list[KeyframeView]:
         """Keyframes of ``history`` old enough and within the orientation bound, best thumbnail match first,
@@ -151,7 +179,7 @@ class LoopDetector:
         """Dense correspondences ``src -> dst`` with forward-backward confidences and their mean flow (inf
         without confident matches); the flow starts from ``initial_target`` (P, 2), default zero flow (which the
         estimator passes to DIS explicitly, :meth:`~vigs_core.frontend.dis_flow.DISFlowEstimator.dense_flow`)."""
-        corr = self.estimator.estimate(src.image, dst.image, initial_target)
+        corr = self.estimator.estimate(self.image(src), self.image(dst), initial_target)
         weight = np.asarray(corr.weight, dtype=np.float64)
         flow = corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
         return TwoViewCorrespondences.of(corr), flow
@@ -176,8 +204,12 @@ class LoopDetector:
         return ""
 
     def detect(self, new: KeyframeView, history: Sequence[KeyframeView]) -> LoopDecision:
-        """Look for a loop between ``new`` and the keyframes of ``history`` (all earlier keyframes, any order)."""
+        """Look for a loop between ``new`` and the keyframes of ``history`` (all earlier keyframes, any order).
+        Keeps ``new``'s image and thumbnail for later calls, where its view may come without the image."""
         cfg = self.detection
+        if new.image is not None:
+            self._images.put(new.id, new.image)
+        self._thumb(new)
         decision = LoopDecision()
         if self._last_loop_kf is not None and new.id - self._last_loop_kf < cfg.min_keyframes_between_loops:
             return decision

@@ -6,7 +6,7 @@ visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1
 1. applies a finished PGBA: keyframe poses and disparities, frame poses (:func:`~vigs_core.loop.apply.
    apply_to_odometry`), inertial velocities ``v' = c R_c v`` of the visual-inertial odometry, and one batch of
    keyframe pose/scale updates for the mapper's anchored Gaussians (or the ``on_update`` callback);
-2. registers the keyframes created since the last call: their views (image, ``T_WC``, grid depth ``1/d``) and
+2. registers the keyframes created since the last call: their views (image, ``T_WC``, grid disparities) and
    an odometry edge to the previous keyframe whose information comes from the frontend's dense correspondences
    of the pair (:func:`~vigs_core.loop.two_view.edge_information`; the configured standard deviations when the
    frontend has none);
@@ -22,7 +22,7 @@ applies corrections.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -44,16 +44,13 @@ F64 = torch.float64
 
 
 def keyframe_views(kfs: list[Any], units: list[float]) -> list[KeyframeView]:
-    """The :class:`KeyframeView` of frontend keyframes (``pose`` world->camera, ``disp`` grid inverse depth) whose
-    depth units are ``units`` (see :class:`KeyframeView`), built in one batch (a loop correction changes every
-    keyframe at once)."""
+    """The :class:`KeyframeView` of frontend keyframes (``pose`` world->camera, ``disp`` grid inverse depth, shared
+    with the view) whose depth units are ``units`` (see :class:`KeyframeView`), the poses inverted in one batch (a
+    loop correction changes every keyframe at once)."""
     if not kfs:
         return []
     T_WC = se3_inverse(torch.stack([kf.pose for kf in kfs]).to(F64))
-    disp = torch.stack([kf.disp for kf in kfs]).to(F64)
-    depth = torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
-    return [KeyframeView(int(kf.id), kf.image, T, d, unit)
-            for kf, T, d, unit in zip(kfs, T_WC.unbind(0), depth.unbind(0), units)]
+    return [KeyframeView(int(kf.id), kf.image, T, kf.disp, unit) for kf, T, unit in zip(kfs, T_WC.unbind(0), units)]
 
 
 @dataclass
@@ -128,8 +125,8 @@ class LoopClosureDriver:
                 a = views.get(prev)
                 b = views[k]
                 info = None if a is None or (prev, k) not in edges else OdometryEdgeInformation(
-                    prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), a.depth.numpy().copy(),
-                    b.depth.numpy().copy(), edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
+                    prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), a.depth.numpy(), b.depth.numpy(),
+                    edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
                     self.odometry.intr, self.config.verification)
                 self.closure.add_keyframe(b, history, info)
                 self._registered.append(k)
@@ -176,8 +173,10 @@ class LoopClosureDriver:
         frontend replaces these tensors, it never edits them in place), cached otherwise."""
         stale = [kf for k, kf in self.odometry.keyframes.items()
                  if k not in self._views or self._views[k][0] is not kf.pose or self._views[k][1] is not kf.disp]
+        last = self._registered[-1] if self._registered else -1
         for kf, view in zip(stale, keyframe_views(stale, [self.closure.unit(kf.id) for kf in stale])):
-            self._views[kf.id] = (kf.pose, kf.disp, view)
+            # the detector keeps the image of a registered keyframe: a view need not hold it past registration
+            self._views[kf.id] = (kf.pose, kf.disp, view if kf.id > last else replace(view, image=None))
         return {k: self._views[k][2] for k in self.odometry.keyframes}
 
     def _metric(self) -> bool:

@@ -11,8 +11,11 @@ tracking keeps its core and loop closure uses what is left.
 
 Protocol (one duplex pipe, messages handled in order by the child, an ``inline`` :class:`LoopClosure` there):
 
-* ``("views", [(id, T_WC, depth, unit, image or None)])``: keyframe views new or changed since last sent (the
-  image only with a keyframe's first view: it never changes);
+* ``("views", [(id, T_WC, disp or None, unit, image or None)])``: keyframe views new or changed since last
+  sent. The image only with a keyframe's first view (it never changes). The disparities with the first view and
+  then only once the keyframe is old enough to be a loop candidate (``min_keyframe_gap``): the window's bundle
+  adjustment changes the newest keyframes' disparities at every keyframe, and detection reads only the new
+  keyframe's and the candidates' depths (None: keep the disparities the child has);
 * ``("keyframe", id, history_ids, information)``: :meth:`LoopClosure.add_keyframe` on the child's views; the
   information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
 * ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
@@ -71,7 +74,14 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     closure = LoopClosure(replace(config, asynchronous=False), DISFlowEstimator(grid, flow), intr)
-    views: dict[int, KeyframeView] = {}
+    try:
+        _serve(conn, closure)
+    finally:
+        closure.close()   # removes the detector's spill folder (a child exits without atexit handlers)
+
+
+def _serve(conn: Any, closure: LoopClosure) -> None:
+    views: dict[int, KeyframeView] = {}   # without images once detected: the detector keeps those
     covered = 0
     while True:
         try:
@@ -81,12 +91,13 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
         kind = msg[0]
         try:
             if kind == "views":
-                for k, T_WC, depth, unit, image in msg[1]:
-                    views[k] = KeyframeView(k, views[k].image if image is None else image, torch.from_numpy(T_WC),
-                                            torch.from_numpy(depth), unit)
+                for k, T_WC, disp, unit, image in msg[1]:
+                    views[k] = KeyframeView(k, image, torch.from_numpy(T_WC),
+                                            views[k].disp if disp is None else torch.from_numpy(disp), unit)
             elif kind == "keyframe":
                 _, k, history, information = msg
                 closure.add_keyframe(views[k], [views[i] for i in history], information)
+                views[k] = replace(views[k], image=None)
             elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
                                                            msg[2]):
                 _send(conn, ("result", None))
@@ -128,7 +139,7 @@ class LoopClosureProcess:
         self._outbox: queue.Queue = queue.Queue()
         self._sender = threading.Thread(target=self._write, name="loop-closure-sender", daemon=True)
         self._sender.start()
-        self._sent: dict[int, KeyframeView] = {}
+        self._sent: dict[int, tuple[KeyframeView, torch.Tensor]] = {}   # id -> view, disparities as last sent
         self._found = 0
         self._covered = 0
         self._in_flight = False
@@ -179,12 +190,19 @@ class LoopClosureProcess:
     # ------------------------------------------------------------------ LoopClosure's caller side
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
                      odometry_information: InformationSource = None) -> None:
-        """Send the views not yet in the child (or changed since) and queue ``new`` for detection there."""
-        changed = [v for v in (*history, new) if self._sent.get(v.id) is not v]
+        """Send the views not yet in the child (or changed since; disparities only where detection reads them,
+        see the module docstring) and queue ``new`` for detection there."""
+        candidate_ids = new.id - self.config.detection.min_keyframe_gap
+        changed = []   # (id, T_WC, disp or None, unit, image or None)
+        for v in (*history, new):
+            view, disp = self._sent.get(v.id, (None, None))
+            send_disp = view is None or (v.id <= candidate_ids and disp is not v.disp)
+            if view is not v or send_disp:
+                changed.append((v.id, host(v.T_WC), host(v.disp) if send_disp else None, v.unit,
+                                v.image if view is None else None))
+                self._sent[v.id] = (v, v.disp if send_disp else disp)
         if changed:
-            self._post(("views", [(v.id, host(v.T_WC), host(v.depth), v.unit,
-                                          None if v.id in self._sent else v.image) for v in changed]))
-            self._sent.update({v.id: v for v in changed})
+            self._post(("views", changed))
         self._post(("keyframe", new.id, [v.id for v in history], odometry_information))
 
     @property

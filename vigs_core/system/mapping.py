@@ -51,7 +51,8 @@ class MappingConfig:
             and from 37 s to 161 s in all). The mapper is a worker thread, so tracking never waits for it but
             shares the CPU with it; the run waits for the mapper's backlog at the end.
         mapper: the mapper's settings (:class:`vigs_core.mapping.MapperConfig`).
-        keyframe_delay: a keyframe is mapped once this many newer keyframes exist (its depth refined by BA).
+        keyframe_delay: a keyframe is mapped once this many newer keyframes exist (its depth refined by BA);
+            below the frontend's window (its image is dropped when it leaves the window).
         min_confidence: grid cells whose best outgoing-edge flow confidence is below this get no depth, [0, 1].
         max_depth_ratio: depths beyond this multiple of the keyframe's median depth are treated as invalid.
         pose_tolerance: keyframe pose change (translation in world units plus rotation in rad, norm of the
@@ -100,6 +101,10 @@ class OnlineMapping:
     """
 
     def __init__(self, config: MappingConfig, odometry: Any, camera, device: torch.device | str = "cpu") -> None:
+        window = odometry.graph.config.window
+        if config.keyframe_delay >= window:   # the frontend drops a keyframe's image once it leaves the window
+            raise ValueError(f"mapping.keyframe_delay ({config.keyframe_delay}) must be below the frontend's "
+                             f"window ({window}): a keyframe is mapped while its image is still kept")
         self.config = config
         self.odometry = odometry
         self.mapper = GaussianMapper(config.mapper, camera, device)
@@ -202,7 +207,7 @@ class OnlineMapping:
     def _current(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         kf = self.odometry.keyframes[k]
         self._seen[k] = (kf.pose, kf.disp)
-        return se3_inverse(kf.pose.to(F64)), kf.disp.to(F64).clone()
+        return se3_inverse(kf.pose.to(F64)), kf.disp.to(F64)   # no copy: the frontend replaces, never edits
 
     def _depth(self, k: int, disp: torch.Tensor) -> np.ndarray:
         """Grid depth (rows, cols) of keyframe ``k`` from its disparities (P,), 0 where invalid."""
