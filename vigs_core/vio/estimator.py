@@ -214,7 +214,8 @@ class VisualInertialEstimator:
         bias through the anchor; before that the whole window is vision-only. Once metric, the window gets the
         marginalisation prior when one exists (:meth:`marginalize`); otherwise the keyframes in ``anchored`` (the
         window's fixed ones) keep their velocity and bias through an
-        :class:`~vigs_core.vio.inertial_terms.AnchorPrior`."""
+        :class:`~vigs_core.vio.inertial_terms.AnchorPrior`. Cached preintegrations of pairs older than the window
+        are dropped: windows only move forward, so a long run keeps one window's worth."""
         c = self.config
         if not c.enabled or self.stage == Stage.VISION_ONLY or len(ids) < 2:
             return None
@@ -223,6 +224,8 @@ class VisualInertialEstimator:
         if not all(covered) and not (self.metric and any(covered)):
             return None
         joint = self.stage == Stage.JOINT_UNALIGNED
+        for old in [pair for pair in self._pre if pair[0] < ids[0]]:   # the window only moves forward
+            del self._pre[old]
         stand_in = pairs[covered.index(True)]   # an interval across a gap is not integrated: weight 0, any stand-in
         pre = self.preintegrations([p if ok else stand_in for p, ok in zip(pairs, covered)])
         prior = _bias_stds(c.bias_prior_gyro_std, c.bias_prior_acc_std)
