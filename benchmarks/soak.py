@@ -11,7 +11,9 @@ loop closure on:
 Every ``--sample-s`` seconds the RSS of the run's processes (by role: the run or its node name, the loop-closure
 worker) and the frontend's keyframe count (from the progress of ``vigs run``; the graph's is not sampled) are
 recorded. Printed per process: peak RSS, RSS at the end of the warm-up (``--warmup-s`` of wall time) and at the
-end (the last two samples, which can catch a process exiting, are left out), the slope after the warm-up (least squares, MB per minute of wall time), and for ``vigs run`` the slope per
+end (the last two samples, which can catch a process exiting, are left out), the slope after the warm-up (least
+squares, MB per minute of wall time; for ``vigs run`` only while it tracks, before the first sample at the final
+keyframe count, not while the mapper drains or the loop-closure child exits), and for ``vigs run`` the slope per
 keyframe; then the output sizes.
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph]
@@ -80,13 +82,16 @@ def summarise(series: dict[str, list], warmup_s: float) -> dict[str, dict]:
     for name, points in series.items():
         points = points[:-2] if len(points) > 8 else points   # the last samples catch the process exiting
         a = np.array([(t, mb) for t, mb, _ in points])
+        kf = np.array([k if k is not None else np.nan for _, _, k in points], dtype=float)
         late = a[:, 0] >= warmup_s
+        if np.isfinite(kf).any():   # while tracking: before the first sample at the final keyframe count
+            late &= np.arange(len(kf)) < int(np.nanargmax(kf))
         row = {"peak_mb": round(float(a[:, 1].max()), 1), "end_mb": round(float(a[-1, 1]), 1),
                "samples": len(a)}
         if late.sum() >= 3:
             row["warm_mb"] = round(float(a[late][0, 1]), 1)
             row["slope_mb_per_min"] = round(float(np.polyfit(a[late, 0] / 60.0, a[late, 1], 1)[0]), 2)
-            kf = np.array([k if k is not None else np.nan for _, _, k in points], dtype=float)[late]
+            kf = kf[late]
             if np.isfinite(kf).sum() >= 3 and np.ptp(kf[np.isfinite(kf)]) > 0:
                 ok = np.isfinite(kf)
                 row["slope_mb_per_keyframe"] = round(float(np.polyfit(kf[ok], a[late][ok, 1], 1)[0]), 3)
