@@ -1,6 +1,7 @@
 """The Gaussian mapper inside ``vigs run``: a short rendered sequence (project simulator) through the pipeline
 with mapping on (map.ply, report numbers, render quality), and the keyframe feeding (depth masking, batched pose
 and scale updates when the world is rescaled)."""
+import gc
 import json
 import math
 from dataclasses import dataclass
@@ -59,11 +60,17 @@ def test_vigs_run_maps_keyframes_and_reports_render_quality(tmp_path):
                       "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n"
                       "    imu:\n      enabled: false\n    loop:\n      enabled: false\n"
                       "    mapping:\n      eval_stride: 3\n      final_refine_iterations: 30\n"
-                      "      mapper:\n        iterations: 10\n")
+                      "      mapper:\n        iterations: 10\n"
+                      f"        keyframe_store: {{resident: 2, directory: {tmp_path / 'spill'}}}\n")
     cfg = load_config(params)
     assert cfg.mapping.enabled and cfg.mapping.final_refine_iterations == 30
     out = tmp_path / "out"
+    (tmp_path / "spill").mkdir()
     report = run_pipeline("sim", cfg, out, progress=False, sequence=rendered_sequence())
+    assert report["mapping"]["keyframes_on_disk"] == report["keyframes"] - 2
+    assert report["mapping"]["keyframe_disk_reads"] > 0
+    gc.collect()   # the store's folder goes with the mapper
+    assert list((tmp_path / "spill").iterdir()) == []
     m = json.loads((out / "report.json").read_text())["mapping"]
     assert m == report["mapping"]
     assert m["keyframes_mapped"] == report["keyframes"] >= 4

@@ -281,7 +281,7 @@ class GaussianMapper:
         )
         self.map = GaussianMap.empty(device=self.device)
         self.keyframes: dict[int, Keyframe] = {}
-        self._pixels = SpillStore(self.config.keyframe_store, "mapper-keyframes")
+        self.pixel_store = SpillStore(self.config.keyframe_store, "mapper-keyframes")
         self.stats = MapperStats()
         self._next_id = 0
         self._rng = random.Random(c.seed)
@@ -299,9 +299,9 @@ class GaussianMapper:
         (H', W') metres (0 or non-finite = invalid; any resolution, resampled to the render size)."""
         size = (self.render_camera.width, self.render_camera.height)
         kf_id = int(kf_id)
-        self._pixels.put(kf_id, (_prepare_image(image, size) * 255.0).round_().to(torch.uint8).cpu().numpy(),
+        self.pixel_store.put(kf_id, (_prepare_image(image, size) * 255.0).round_().to(torch.uint8).cpu().numpy(),
                          _prepare_depth(depth, size).cpu().numpy())
-        kf = Keyframe(kf_id, torch.as_tensor(T_WC, dtype=torch.float64).reshape(4, 4).clone(), self._pixels,
+        kf = Keyframe(kf_id, torch.as_tensor(T_WC, dtype=torch.float64).reshape(4, 4).clone(), self.pixel_store,
                       self.device, timestamp_ns)
         self._inbox.put_keyframe(kf)
 

@@ -187,6 +187,8 @@ class OnlineMapping:
             "pose_update_batches": self.pose_update_batches,
             "gaussians_added": stats.added, "gaussians_pruned": stats.pruned,
             "render_size": [self.mapper.render_camera.width, self.mapper.render_camera.height],
+            "keyframes_on_disk": len(self.mapper.pixel_store) - self.mapper.pixel_store.resident_count,
+            "keyframe_disk_reads": self.mapper.pixel_store.reads,
         }
         t0 = time.perf_counter()
         out["online"] = _rounded(self.mapper.evaluate(views))
