@@ -17,7 +17,7 @@ keyframe count, not while the mapper drains or the loop-closure child exits), an
 keyframe; then the output sizes.
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph]
-                    [--params FILE] [--json OUT]
+                    [--params FILE] [--bag BAG] [--json OUT]
 """
 from __future__ import annotations
 
@@ -147,10 +147,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache", default=str(ROOT / "out" / "soak"), help="the rendered bag and the run outputs")
     p.add_argument("--no-graph", action="store_true", help="only vigs run")
     p.add_argument("--params", help="vigs run's --params (the graph runs the shipped parameters)")
+    p.add_argument("--bag", help="run this bag instead of the procedural sequence (e.g. a hybrid EuRoC bag: a "
+                                 "scene that is mostly new, for the growth per keyframe and per Gaussian)")
     p.add_argument("--json", help="write the results here")
     args = p.parse_args(argv)
     cache = Path(args.cache)
-    bag = render(args.duration, cache)
+    bag = Path(args.bag) if args.bag else render(args.duration, cache)
     results = {}
     runs = [("vigs run", lambda b, o, s: run_vigs_run(b, o, s, args.params))]
     runs += [] if args.no_graph else [("graph", run_graph)]
