@@ -50,6 +50,7 @@ import torch
 from vigs_core.arrays import host
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
+from vigs_core.heap import map_large_blocks
 from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig
 from vigs_core.loop.detection import KeyframeView
@@ -71,6 +72,7 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
 
     if config.process_nice:
         os.nice(config.process_nice)
+    map_large_blocks()   # image-sized temporaries must not fragment the heap over a long run
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     closure = LoopClosure(replace(config, asynchronous=False), DISFlowEstimator(grid, flow), intr)

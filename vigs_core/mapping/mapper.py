@@ -31,7 +31,6 @@ optimisation steps.
 """
 from __future__ import annotations
 
-import ctypes
 import math
 import random
 import threading
@@ -44,6 +43,7 @@ import numpy as np
 import torch
 
 from vigs_core.geometry import se3_inverse
+from vigs_core.heap import retain_freed_heap
 from vigs_core.mapping.anchor import anchored_update
 from vigs_core.mapping.gaussians import PARAMETER_FIELDS, GaussianMap
 from vigs_core.mapping.inbox import MapperInbox
@@ -83,8 +83,8 @@ class MapperConfig:
         tile_size: tile edge of the reference rasterizer, pixels.
         max_per_tile: Gaussians composited per tile at most (reference rasterizer).
         seed: seed of the keyframe sampler.
-        retain_heap: keep freed heap memory in the process (see :func:`retain_freed_heap`; glibc only,
-            process-wide) instead of returning it to the kernel after every step.
+        retain_heap: keep freed heap memory in the process (see :func:`vigs_core.heap.retain_freed_heap`; glibc
+            only, process-wide) instead of returning it to the kernel after every step.
         max_backlog: keyframes queued at most (:class:`vigs_core.mapping.inbox.MapperInbox`): older ones are
             deferred, mapped when nothing else waits (idle, or the shutdown drain); while the queue is full the
             keyframe being inserted gets no further optimisation steps. A live mapper that cannot keep up stays
@@ -186,33 +186,6 @@ class MapperStats:
     pruned: int = 0
     pose_updates: int = 0
     ignored_pose_ids: list[int] = field(default_factory=list)
-
-
-# glibc mallopt parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
-
-
-def retain_freed_heap() -> bool:
-    """Make glibc's malloc keep freed memory for reuse instead of handing it back to the kernel.
-
-    Every optimisation step allocates and frees tens of megabytes of CPU tensors (PyTorch's CPU allocator
-    calls malloc directly). With glibc's defaults, blocks above the mmap threshold are mapped and unmapped
-    per allocation and the top of the heap is trimmed once more than the trim threshold is free, so the
-    next step takes a page fault (and the kernel zeroes a page) for every 4 KiB again: in the mapping
-    benchmark that was about 10% of the CPU time, all of it system time. Serving blocks up to 32 MiB (the
-    largest mmap threshold glibc accepts on 64-bit) from the heap, trimming only beyond 1 GiB free and
-    growing the heap 64 MiB at a time keeps the pages mapped: the process retains its peak heap size.
-    Process-wide; a no-op returning False where the C library is not glibc."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    ok = mallopt(_M_MMAP_THRESHOLD, 32 << 20) == 1
-    ok &= mallopt(_M_TRIM_THRESHOLD, 1 << 30) == 1
-    ok &= mallopt(_M_TOP_PAD, 64 << 20) == 1
-    return bool(ok)
 
 
 def _prepare_image(image, size: tuple[int, int]) -> torch.Tensor:

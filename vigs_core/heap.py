@@ -1,0 +1,54 @@
+"""glibc malloc policies for processes whose large temporaries interleave with long-lived small state.
+
+Two opposite choices, each for one kind of process (process-wide; no-ops returning False where the C library is
+not glibc):
+
+* :func:`retain_freed_heap` for the Gaussian mapper, whose every step allocates and frees tens of megabytes:
+  keeping them in the heap avoids a page fault per 4 KiB on the next step;
+* :func:`map_large_blocks` for the loop-closure child, which handles one keyframe now and then: image-sized
+  temporaries (flows, images read back) get their own mappings and go back to the kernel when freed, instead of
+  leaving heap fragments between the small per-keyframe state kept for the whole run (RSS growth per keyframe
+  in docs/benchmarks.md, issue 19).
+"""
+from __future__ import annotations
+
+import ctypes
+from typing import Callable
+
+# glibc mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+
+
+def _mallopt() -> Callable[[int, int], int] | None:
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return None
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    return mallopt
+
+
+def retain_freed_heap() -> bool:
+    """Make glibc's malloc keep freed memory for reuse instead of handing it back to the kernel.
+
+    Every optimisation step allocates and frees tens of megabytes of CPU tensors (PyTorch's CPU allocator
+    calls malloc directly). With glibc's defaults, blocks above the mmap threshold are mapped and unmapped
+    per allocation and the top of the heap is trimmed once more than the trim threshold is free, so the
+    next step takes a page fault (and the kernel zeroes a page) for every 4 KiB again: in the mapping
+    benchmark that was about 10% of the CPU time, all of it system time. Serving blocks up to 32 MiB (the
+    largest mmap threshold glibc accepts on 64-bit) from the heap, trimming only beyond 1 GiB free and
+    growing the heap 64 MiB at a time keeps the pages mapped: the process retains its peak heap size."""
+    mallopt = _mallopt()
+    if mallopt is None:
+        return False
+    ok = mallopt(_M_MMAP_THRESHOLD, 32 << 20) == 1
+    ok &= mallopt(_M_TRIM_THRESHOLD, 1 << 30) == 1
+    ok &= mallopt(_M_TOP_PAD, 64 << 20) == 1
+    return bool(ok)
+
+
+def map_large_blocks(threshold: int = 128 << 10) -> bool:
+    """Serve blocks of ``threshold`` bytes and more from their own mappings, always (a fixed threshold: glibc's
+    default raises it to the largest block freed so far, after which image-sized blocks come from the heap)."""
+    mallopt = _mallopt()
+    return mallopt is not None and mallopt(_M_MMAP_THRESHOLD, threshold) == 1
