@@ -17,10 +17,10 @@ import ctypes
 import gc
 import sys
 import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psutil
 import torch
 
 TENSOR_OVERHEAD = 300   # bytes of a tensor's Python object, TensorImpl and StorageImpl (approximate)
@@ -76,13 +76,6 @@ def malloc_in_use() -> int | None:
     return int(info.uordblks + info.hblkhd)
 
 
-def rss_bytes() -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    return 0
-
-
 def holders(odo: Any, mapping: Any) -> dict[str, Any]:
     """The long-lived holders of the main process, in counting order."""
     from vigs_core.loop.driver import LoopClosureDriver
@@ -117,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             gc.collect()
             seen: set = set()
             sizes = {name: reachable_bytes(obj, seen) for name, obj in holders(odo, mapping).items()}
-            snapshots[frames] = {"keyframes": len(odo.keyframes), "rss": rss_bytes(), "malloc": malloc_in_use(),
+            snapshots[frames] = {"keyframes": len(odo.keyframes), "rss": psutil.Process().memory_info().rss, "malloc": malloc_in_use(),
                                  "gaussians": len(mapping.mapper.map) if mapping is not None else 0,
                                  "sizes": sizes}
         return step(self, odo, T_BS, frames, mapping)

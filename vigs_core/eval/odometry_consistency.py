@@ -4,8 +4,9 @@ The camera-rate odometry's pose drifts from where metric tracking started (REP-1
 estimate itself defines), so its error is measured the way a consumer sees it: the ground truth is moved rigidly
 onto the estimate's pose at the first metric frame, and each later metric frame's position error (m) and rotation
 error ``Log(R_est R_gt^T)`` (rad; about x and y the tilt, about z the yaw in a gravity-aligned frame) are taken
-against it, in the estimate's frame. The normalised estimation error squared, ``e^T S^-1 e`` per frame, should average the degrees of freedom when the
-covariance ``S`` is consistent (Bar-Shalom, "Estimation with Applications to Tracking", 5.4).
+against it, in the estimate's frame. The normalised estimation error squared, ``e^T S^-1 e`` per frame, should
+average the degrees of freedom when the covariance ``S`` is consistent (Bar-Shalom, "Estimation with Applications
+to Tracking", 5.4).
 """
 from __future__ import annotations
 

@@ -67,14 +67,18 @@ class KeyframeView:
     def from_depth(cls, id: int, image: np.ndarray | None, T_WC: torch.Tensor, depth: torch.Tensor,
                    unit: float = 1.0) -> "KeyframeView":
         """The view of a keyframe given by its grid depths (P,) (0 = unknown)."""
-        depth = torch.as_tensor(depth, dtype=F64)
-        return cls(id, image, T_WC, torch.where(depth > 0, 1.0 / depth.clamp_min(1e-12), 0.0), unit)
+        return cls(id, image, T_WC, _reciprocal(torch.as_tensor(depth)), unit)
 
     @property
     def depth(self) -> torch.Tensor:
         """(P,) float64 depths of the grid pixels, map units (0 = unknown)."""
-        disp = self.disp.to(F64)
-        return torch.where(disp > 0, 1.0 / disp.clamp_min(1e-12), 0.0)
+        return _reciprocal(self.disp)
+
+
+def _reciprocal(x: torch.Tensor) -> torch.Tensor:
+    """``1 / x`` in float64 where ``x > 0``, else 0: depths from disparities and back, unknown staying unknown."""
+    x = x.to(F64)
+    return torch.where(x > 0, 1.0 / x.clamp_min(1e-12), 0.0)
 
 
 @dataclass

@@ -486,14 +486,15 @@ class GaussianMapper:
         t0 = time.perf_counter()
         with self._lock:
             self.keyframes[kf.id] = kf
+            depth = kf.depth
             mask = None
             if len(self.map) > 0:
                 with torch.no_grad():
                     out = self._render(self.map, kf.T_WC, self.render_camera)
                 expected = out.depth / out.alpha.clamp_min(1e-6)
-                mask = (out.alpha < c.densify_alpha) | (kf.depth < (1.0 - c.densify_depth_ratio) * expected)
+                mask = (out.alpha < c.densify_alpha) | (depth < (1.0 - c.densify_depth_ratio) * expected)
             new = gaussians_from_depth(
-                kf.image(), kf.depth, kf.T_WC.float(), self.render_camera, kf.id, self._next_id,
+                kf.image(), depth, kf.T_WC.float(), self.render_camera, kf.id, self._next_id,
                 c.init_stride, c.init_scale, mask,
             )  # fmt: skip
             self._next_id += len(new)
@@ -541,11 +542,12 @@ class GaussianMapper:
         if out.visible.numel() == 0:
             return
         loss = c.lambda_color * (out.color - kf.image()).abs().mean()
-        valid = kf.depth > 0
+        depth = kf.depth
+        valid = depth > 0
         n_valid = int(valid.sum())
         if lambda_depth > 0 and n_valid > 0:
             # mean over valid pixels, as a masked sum (cheaper than gathering them, same gradient)
-            depth_err = (out.depth - kf.depth).abs_().mul_(valid).sum() / n_valid
+            depth_err = (out.depth - depth).abs_().mul_(valid).sum() / n_valid
             loss = loss + lambda_depth * depth_err
         if c.lambda_iso > 0:
             s = sub.log_scales.index_select(0, out.visible).exp()
