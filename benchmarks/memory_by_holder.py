@@ -57,6 +57,9 @@ def reachable_bytes(obj: Any, seen: set) -> int:
             stack += list(o)
         elif hasattr(o, "__dict__") and not isinstance(o, (str, bytes, int, float)):
             stack.append(o.__dict__)
+        elif not isinstance(o, (str, bytes, int, float)):   # a __slots__ class: what its slots hold
+            slots = [n for c in type(o).__mro__ for n in getattr(c, "__slots__", ())]
+            stack += [getattr(o, n) for n in slots if hasattr(o, n)]
     return total
 
 

@@ -1,10 +1,13 @@
-"""Frontend components: DIS correspondences on synthetic warps, keyframe policy, frame graph updates."""
+"""Frontend components: DIS correspondences on synthetic warps, keyframe policy, frame graph updates, frame
+records."""
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from vigs_core.frontend import (DISFlowConfig, DISFlowEstimator, FrameGraph, FrameGraphConfig, KeyframePolicy,
                                 KeyframePolicyConfig, PixelGrid)
+from vigs_core.frontend.odometry import PoseRows, _Frame
 
 cv2.setNumThreads(1)
 W, H = 192, 128
@@ -190,3 +193,18 @@ def test_window_ba_holds_the_fixed_keyframe_depth_as_scale_gauge():
         assert (odo.keyframes[k].disp - disps[k]).abs().max() < 1e-6
     free, _, _ = _window_problem(hold=False)   # only the pose fixed: the depth of keyframe 0 moves too
     assert not torch.equal(free.keyframes[0].disp, disps[0])
+
+
+def test_frame_records_keep_their_poses_compactly_and_hand_out_copies():
+    """Frames store ``rel`` and ``odom`` in shared chunked rows (a long run keeps every frame): across chunk
+    boundaries each reads back exactly what was set, unset is None, and editing a pose read does not edit it."""
+    rows = PoseRows(chunk=3)
+    poses = [torch.eye(4, dtype=torch.float64) + 0.01 * k for k in range(7)]
+    frames = [_Frame(k, rows, ref=0, rel=poses[k], odom=poses[k] if k % 2 else None) for k in range(7)]
+    for k, f in enumerate(frames):
+        assert torch.equal(f.rel, poses[k]) and f.rel.dtype == torch.float64
+        assert (f.odom is None) == (k % 2 == 0)
+    frames[4].rel[0, 3] = 5.0
+    assert torch.equal(frames[4].rel, poses[4])
+    frames[4].rel, frames[4].odom = None, poses[0]
+    assert frames[4].rel is None and torch.equal(frames[4].odom, poses[0]) and torch.equal(frames[5].rel, poses[5])

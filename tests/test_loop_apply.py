@@ -44,7 +44,8 @@ def small_odometry(n=4):
         odo.keyframes[k] = Keyframe(k, 100 * k, image, se3_inverse(T_wc), disp)
         for m in range(2):  # the keyframe's frame and one tracked frame after it
             rel = torch.eye(4, dtype=D) if m == 0 else se3_inverse(sim3_exp(torch.tensor([0.1, 0, 0, 0, 0.02, 0, 0], dtype=D)))
-            odo.frames.append(_Frame(100 * k + m, ref=k, rel=rel, odom=rel @ odo.keyframes[k].pose, keyframe=m == 0))
+            odo.frames.append(_Frame(100 * k + m, odo._pose_rows, ref=k, rel=rel, odom=rel @ odo.keyframes[k].pose,
+                                     keyframe=m == 0))
     return odo
 
 
@@ -153,7 +154,8 @@ def test_driver_closes_the_loop_of_a_drifting_odometry(process):
             rel[:3, 3] *= f
             T_wc, disp = se3_inverse(prev.pose) @ rel, disp0[k] / f
         odo.keyframes[k] = Keyframe(k, 50_000_000 * k, images[k], se3_inverse(T_wc), disp)
-        odo.frames.append(_Frame(50_000_000 * k, ref=k, rel=torch.eye(4, dtype=D), odom=se3_inverse(T_wc), keyframe=True))
+        odo.frames.append(_Frame(50_000_000 * k, odo._pose_rows, ref=k, rel=torch.eye(4, dtype=D),
+                                 odom=se3_inverse(T_wc), keyframe=True))
         if k > 0:
             for a, b in ((k - 1, k), (k, k - 1)):
                 c = flow.estimate(images[a], images[b])
@@ -222,8 +224,9 @@ def test_final_poses_spread_the_next_keyframes_correction_and_follow_a_similarit
     disp = torch.full((GRID.size,), 0.5, dtype=D)
     odo.keyframes[0] = Keyframe(0, 0, image, at(0.0), disp)
     odo.keyframes[1] = Keyframe(1, 1000, image, at(0.9), disp, tracked=(0, at(1.0)))
-    odo.frames += [_Frame(0, ref=0, rel=at(0.0), keyframe=True), _Frame(500, ref=0, rel=at(0.55)),
-                   _Frame(1000, ref=1, rel=at(0.0), keyframe=True), _Frame(1500, ref=1, rel=at(0.3))]
+    rows = odo._pose_rows
+    odo.frames += [_Frame(0, rows, ref=0, rel=at(0.0), keyframe=True), _Frame(500, rows, ref=0, rel=at(0.55)),
+                   _Frame(1000, rows, ref=1, rel=at(0.0), keyframe=True), _Frame(1500, rows, ref=1, rel=at(0.3))]
     _, poses = odo.final_frame_poses()
     centres = se3_inverse(poses)[:, :3, 3]
     np.testing.assert_allclose(centres[:, 0].numpy(), [0.0, 0.50, 0.9, 1.2], atol=1e-12)

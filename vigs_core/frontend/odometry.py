@@ -150,14 +150,62 @@ class Keyframe:
     tracked: tuple[int, torch.Tensor] | None = None
 
 
-@dataclass
+class PoseRows:
+    """Append-only storage of the frames' poses: two (4, 4) float64 slots per frame (``rel`` and ``odom``) in
+    chunks of ``chunk`` frames, where two tensors of their own cost a frame about 1.2 KB more (a long run keeps
+    every frame). An unset slot is NaN."""
+
+    def __init__(self, chunk: int = 4096) -> None:
+        self._chunk = chunk
+        self._blocks: list[np.ndarray] = []
+        self._rows = 0
+
+    def add(self) -> int:
+        """A new frame's row index, both slots unset."""
+        if self._rows % self._chunk == 0:
+            self._blocks.append(np.full((self._chunk, 2, 4, 4), np.nan))
+        self._rows += 1
+        return self._rows - 1
+
+    def get(self, row: int, slot: int) -> torch.Tensor | None:
+        """A copy of the pose in ``slot`` of ``row``, or None if unset."""
+        pose = self._blocks[row // self._chunk][row % self._chunk, slot]
+        return None if np.isnan(pose[3, 3]) else torch.from_numpy(pose.copy())
+
+    def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
+        self._blocks[row // self._chunk][row % self._chunk, slot] = (
+            np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy())
+
+
 class _Frame:
-    t_ns: int
-    ref: int | None = None              # reference keyframe id
-    rel: torch.Tensor | None = None     # T_cw(frame) T_cw(ref)^-1
-    odom: torch.Tensor | None = None    # causal world->camera pose
-    keyframe: bool = False
-    pending: Correspondences | None = None  # before initialisation: correspondences from the first frame
+    """A frame's record: time, reference keyframe, its poses (``rel = T_cw(frame) T_cw(ref)^-1`` and the causal
+    world->camera ``odom``, kept in the odometry's :class:`PoseRows`; reading gives a copy), whether it became a
+    keyframe, and before initialisation its correspondences from the first frame."""
+
+    __slots__ = ("t_ns", "ref", "keyframe", "pending", "_rows", "_row")
+
+    def __init__(self, t_ns: int, rows: PoseRows, ref: int | None = None, rel: torch.Tensor | None = None,
+                 odom: torch.Tensor | None = None, keyframe: bool = False) -> None:
+        self.t_ns, self.ref, self.keyframe = t_ns, ref, keyframe
+        self.pending: Correspondences | None = None
+        self._rows, self._row = rows, rows.add()
+        self.rel, self.odom = rel, odom
+
+    @property
+    def rel(self) -> torch.Tensor | None:
+        return self._rows.get(self._row, 0)
+
+    @rel.setter
+    def rel(self, pose: torch.Tensor | None) -> None:
+        self._rows.set(self._row, 0, pose)
+
+    @property
+    def odom(self) -> torch.Tensor | None:
+        return self._rows.get(self._row, 1)
+
+    @odom.setter
+    def odom(self, pose: torch.Tensor | None) -> None:
+        self._rows.set(self._row, 1, pose)
 
 
 class DenseOdometry:
@@ -184,6 +232,7 @@ class DenseOdometry:
         self.keyframes: dict[int, Keyframe] = {}
         self._left_window: list[int] = []   # keyframes that left the window, images not yet dropped
         self.frames: list[_Frame] = []
+        self._pose_rows = PoseRows()
         self.edges: dict[tuple[int, int], Correspondences] = {}
         self.initialized = False
         self._dtype = getattr(torch, self.config.solver_dtype)
@@ -212,7 +261,7 @@ class DenseOdometry:
                 if k in self.keyframes:
                     self.keyframes[k].image = None
             self._left_window.clear()
-        frame = _Frame(int(t_ns))
+        frame = _Frame(int(t_ns), self._pose_rows)
         self.frames.append(frame)
         outer, self._on_pose = self._on_pose, on_pose   # a nested frame's callback is its own
         try:
