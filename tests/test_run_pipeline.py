@@ -171,6 +171,7 @@ def test_unreadable_frames_are_skipped_and_too_many_end_the_run_with_its_outputs
     ("    imu: {max_speed: fast}\n", "parameter imu.max_speed: expected float, got 'fast'"),
     ("    imu: {enabled: 1}\n", "parameter imu.enabled: expected bool, got 1 (int)"),
     ("  [\n", "not valid YAML"),
+    ("odometry:\n  flow: {patch_stride: 5}\n", "top-level 'odometry' is not a '<node>: ros__parameters:' section"),
 ])
 def test_vigs_run_rejects_bad_params_in_one_line_naming_file_and_key(tmp_path, capsys, text, says):
     bad = tmp_path / "bad.yaml"

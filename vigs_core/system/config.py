@@ -153,12 +153,15 @@ def read_params_yaml(path: str | Path) -> dict:
 
 def load_config(path: str | Path | None = None, node: str = NODE_NAME) -> PipelineConfig:
     """Defaults, overridden by ``<node>: ros__parameters:`` of the YAML file ``path`` when given. Malformed YAML,
-    a missing section, unknown keys, wrong types and values out of range raise ``ValueError`` naming the file and
-    the key."""
+    a missing section, a top-level entry that is not a node section, unknown keys, wrong types and values out of
+    range raise ``ValueError`` naming the file and the key."""
     cfg = PipelineConfig()
     if path is None:
         return cfg
     content = read_params_yaml(path)
+    for key, value in content.items():   # a graph-wide file: other nodes' sections are theirs, but sections
+        if not (isinstance(value, dict) and "ros__parameters" in value):   # of another shape are mistakes
+            raise ValueError(f"{path}: top-level {key!r} is not a '<node>: ros__parameters:' section")
     section = content.get(node, {}).get("ros__parameters") if isinstance(content.get(node), dict) else None
     if not isinstance(section, dict):
         raise ValueError(f"{path}: no '{node}: ros__parameters:' mapping (found top-level keys {sorted(content)})")
