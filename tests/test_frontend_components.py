@@ -208,3 +208,34 @@ def test_frame_records_keep_their_poses_compactly_and_hand_out_copies():
     assert torch.equal(frames[4].rel, poses[4])
     frames[4].rel, frames[4].odom = None, poses[0]
     assert frames[4].rel is None and torch.equal(frames[4].odom, poses[0]) and torch.equal(frames[5].rel, poses[5])
+
+
+def test_a_live_caller_tracks_frames_while_keyframe_flows_run_on_other_threads():
+    """While a keyframe pair's flows run on the estimator's threads, the odometry calls ``interleave`` every few
+    milliseconds (a frame that arrived is tracked at once), all at the yield point just passed, and hands back
+    the pair's correspondences unchanged; a caller without ``interleave`` just waits."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vigs_core.frontend.odometry import DenseOdometry
+    from vigs_core.solver import Intrinsics
+
+    odo = DenseOdometry(Intrinsics(150.0, 150.0, W / 2, H / 2), W, H)
+    rng = np.random.default_rng(0)
+    a = cv2.GaussianBlur((rng.random((H, W)) * 255).astype(np.uint8), (5, 5), 1.5)
+    b = np.roll(a, 3, axis=1)
+    expected = odo.estimator.estimate_pair(a, b)
+    calls = []
+    odo.interleave = lambda: calls.append(odo.yield_points)
+    odo.in_keyframe_work, odo.yield_points = True, 7
+    release = threading.Event()
+    with ThreadPoolExecutor(1) as pool:   # a pair whose flows take 50 ms or more
+        job = pool.submit(lambda: (release.wait(), odo.estimator.estimate_pair(a, b))[1])
+        threading.Timer(0.05, release.set).start()
+        got = odo._wait(job)
+    assert len(calls) >= 5 and set(calls) == {7} and odo.yield_points == 7
+    for g, e in zip(got, expected):
+        np.testing.assert_array_equal(g.target, e.target)
+        np.testing.assert_array_equal(g.weight, e.weight)
+    odo.interleave = None
+    assert odo._wait(odo.estimator.submit_pair(a, b))[0].target.shape == expected[0].target.shape

@@ -13,7 +13,7 @@ and are zero for targets outside the target image.
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -42,8 +42,8 @@ class DISFlowConfig:
         spatial_propagation: DIS's spatial propagation of good patch flows to their neighbours before each
             level's gradient descent; None keeps the preset's (on).
         parallel_pair: :meth:`DISFlowEstimator.estimate_pair` computes its two flows on two threads (OpenCV
-            releases the GIL), so a pair costs the wall time of one flow where a second core is idle; the CPU
-            time is unchanged.
+            releases the GIL), so a pair costs the wall time of one flow where a second core is idle, and the
+            caller of :meth:`DISFlowEstimator.submit_pair` may work meanwhile; the CPU time is unchanged.
         fb_sigma: forward-backward consistency scale, pixels.
         photometric_sigma: photometric agreement scale, grey levels (0-255).
         border: targets closer than this to the image border get zero confidence, pixels.
@@ -69,10 +69,10 @@ class DISFlowEstimator:
         if self.config.preset not in PRESETS:
             raise ValueError(f"DISFlowConfig.preset {self.config.preset!r}; expected one of {sorted(PRESETS)}")
         self._dis = self._create()
-        # a second DIS instance and one worker thread for the pair's second flow (an instance is not shared
-        # between threads)
+        # a second DIS instance for the pair's second flow (an instance is not shared between threads)
         self._pair_dis = self._create() if self.config.parallel_pair else None
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="dis-pair") if self.config.parallel_pair else None
+        # two worker threads: a pair's two flows run there while the caller may go on (submit_pair)
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="dis-pair") if self.config.parallel_pair else None
         self._coords = grid.coords().astype(np.float32)
 
     def _create(self) -> cv2.DISOpticalFlow:
@@ -132,17 +132,29 @@ class DISFlowEstimator:
 
         The backward flow that the consistency check of ``a -> b`` samples at its targets is the dense flow
         ``F_ba`` from ``b`` to ``a``, the forward flow of the other edge (and vice versa), so two flows serve
-        both edges where :meth:`estimate` would compute four. Each is initialised by its own guess (the geometric warp of its
-        source grid), where :meth:`estimate` initialises its backward flow with the negated forward flow.
+        both edges where :meth:`estimate` would compute four. Each is initialised by its own guess (the geometric
+        warp of its source grid), where :meth:`estimate` initialises its backward flow with the negated forward
+        flow.
         """
+        return self.submit_pair(a, b, initial_ab, initial_ba).result()
+
+    def submit_pair(self, a: np.ndarray, b: np.ndarray, initial_ab: np.ndarray | None = None,
+                    initial_ba: np.ndarray | None = None) -> Future:
+        """:meth:`estimate_pair` as a future: with ``parallel_pair`` its two flows run on the estimator's two
+        threads (OpenCV releases the GIL) while the caller goes on, e.g. tracking a frame that arrived; without,
+        the work is done before returning. The images and guesses must not change until the result is taken."""
         init_ab, init_ba = self._initial_flow(initial_ab), self._initial_flow(initial_ba)
-        if self._pool is None:
-            f_ab, f_ba = self.dense_flow(a, b, init_ab), self.dense_flow(b, a, init_ba)
-        else:
-            job = self._pool.submit(self.dense_flow, b, a, init_ba, self._pair_dis)
+
+        def pair(f_ba: Future | None) -> tuple[Correspondences, Correspondences]:
             f_ab = self.dense_flow(a, b, init_ab)
-            f_ba = job.result()
-        return self._correspondences(a, b, f_ab, f_ba), self._correspondences(b, a, f_ba, f_ab)
+            back = f_ba.result() if f_ba is not None else self.dense_flow(b, a, init_ba)
+            return self._correspondences(a, b, f_ab, back), self._correspondences(b, a, back, f_ab)
+
+        if self._pool is None:
+            done: Future = Future()
+            done.set_result(pair(None))
+            return done
+        return self._pool.submit(pair, self._pool.submit(self.dense_flow, b, a, init_ba, self._pair_dis))
 
     def _initial_flow(self, initial_target: np.ndarray | None) -> np.ndarray | None:
         """Dense initial flow (H, W, 2) from grid targets (P, 2) (non-finite guesses count as zero flow,

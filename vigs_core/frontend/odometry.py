@@ -28,9 +28,11 @@ T_a`` (the end-point correction spread linearly in time over the frames in betwe
 so the final trajectory has no saw-tooth where tracking overshot and the next keyframe's BA pulled back.
 
 Live callers (interleaved tracking): the keyframe work of step 3 takes several frame periods. It has yield points,
-after each edge's correspondence estimate and between BA iterations (and before the visual-inertial stages),
-where ``interleave`` (when set) is called: a caller with a frame that arrived meanwhile tracks it there by calling
-:meth:`DenseOdometry.process` again, so its pose is out within one step of the work instead of after all of it.
+before and after each edge's correspondence estimate, after each BA linearisation and between BA iterations (and
+before the visual-inertial stages), where ``interleave`` (when set) is called, and while a keyframe pair's flows
+run on the estimator's threads it is called every few milliseconds: a caller with a frame that arrived meanwhile
+tracks it there by calling :meth:`DenseOdometry.process` again, so its pose is out within one step of the work
+instead of after all of it.
 Such a frame is tracked against the new keyframe at its pre-BA pose and disparities (it keeps its pose relative
 to that keyframe, so it follows the BA like any other frame) and cannot become a keyframe. Yield points are
 counted (``yield_points``), so a run can be replayed with every frame tracked at the same point
@@ -40,6 +42,8 @@ from __future__ import annotations
 
 import itertools
 import time
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,6 +62,7 @@ from vigs_core.solver import BAConfig, EdgeSet, Intrinsics, align_pose, bundle_a
 
 
 INIT_ALIGN_ITERATIONS = 10  # Gauss-Newton iterations aligning the frames seen before initialisation
+WAIT_POLL_S = 0.002         # how often a live caller looks for frames while keyframe flows run on other threads
 
 
 @dataclass
@@ -375,6 +380,21 @@ class DenseOdometry:
             finally:
                 self._paused_s += time.perf_counter() - t0
 
+    def _wait(self, job: Future):
+        """The result of a job of the keyframe work running on other threads; until it is done ``interleave``
+        is called every ``WAIT_POLL_S``, so a frame that arrives meanwhile is tracked at once. Such frames
+        count as tracked at the yield point just passed: the job changes nothing they read."""
+        while self.interleave is not None and self.in_keyframe_work:
+            try:
+                return job.result(timeout=WAIT_POLL_S)
+            except FutureTimeout:
+                t0 = time.perf_counter()
+                try:
+                    self.interleave()
+                finally:
+                    self._paused_s += time.perf_counter() - t0
+        return job.result()
+
     def _warp(self, kf: Keyframe, T_target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Keyframe grid warped into a camera at ``T_target``: coordinates (P, 2) and whether they land in
         front of it and inside its image (P,). Points behind the camera get the median flow of the others."""
@@ -574,9 +594,10 @@ class DenseOdometry:
                 continue
             todo.discard((j, i))
             uv_ji, _ = self._warp(dst, src.pose)
+            self._yield_point()   # frames tracked here and while the flows run see the same state
             t0 = self._tic()
-            self.edges[(i, j)], self.edges[(j, i)] = est.estimate_pair(src.image, dst.image, uv_ij.numpy(),
-                                                                       uv_ji.numpy())
+            self.edges[(i, j)], self.edges[(j, i)] = self._wait(est.submit_pair(src.image, dst.image,
+                                                                                uv_ij.numpy(), uv_ji.numpy()))
             self._toc("flow", t0)
             self._yield_point()
 

@@ -110,8 +110,8 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
         visual_dtype: dtype of the visual linearisation, Schur complement, back-substitution and cost (e.g.
             float32, about 1.5x faster on CPU); the reduced camera system, the additional terms and the
             returned state keep the dtype of ``poses``. None: that of ``poses``.
-        between: called before each iteration after the first (a live caller tracks a frame that arrived
-            meanwhile; it must not change the inputs).
+        between: called after each linearisation and before each iteration after the first (a live caller
+            tracks a frame that arrived meanwhile; it must not change the inputs).
     Returns:
         :class:`BAResult` with the optimised poses and disparities.
     """
@@ -146,6 +146,8 @@ def bundle_adjust(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coor
             system.freeze_disparities(fixed_disparity)
         if extra is not None:
             H_x, g_x, _ = extra.linearize(result.poses, result.extra_state)
+        if between is not None:
+            between()
         accepted = False
         while not accepted and lam <= cfg.lm_lambda_max:
             C_d = system.C * (1.0 + lam) + cfg.disparity_damping
