@@ -182,12 +182,27 @@ class PoseRows:
             np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy())
 
 
+class _PoseSlot:
+    """A frame's pose held in slot ``slot`` of its :class:`PoseRows` row (reading gives a copy)."""
+
+    def __init__(self, slot: int) -> None:
+        self.slot = slot
+
+    def __get__(self, frame: "_Frame | None", owner: type | None = None):
+        return self if frame is None else frame._rows.get(frame._row, self.slot)
+
+    def __set__(self, frame: "_Frame", pose: torch.Tensor | None) -> None:
+        frame._rows.set(frame._row, self.slot, pose)
+
+
 class _Frame:
     """A frame's record: time, reference keyframe, its poses (``rel = T_cw(frame) T_cw(ref)^-1`` and the causal
     world->camera ``odom``, kept in the odometry's :class:`PoseRows`; reading gives a copy), whether it became a
     keyframe, and before initialisation its correspondences from the first frame."""
 
     __slots__ = ("t_ns", "ref", "keyframe", "pending", "_rows", "_row")
+    rel = _PoseSlot(0)
+    odom = _PoseSlot(1)
 
     def __init__(self, t_ns: int, rows: PoseRows, ref: int | None = None, rel: torch.Tensor | None = None,
                  odom: torch.Tensor | None = None, keyframe: bool = False) -> None:
@@ -195,22 +210,6 @@ class _Frame:
         self.pending: Correspondences | None = None
         self._rows, self._row = rows, rows.add()
         self.rel, self.odom = rel, odom
-
-    @property
-    def rel(self) -> torch.Tensor | None:
-        return self._rows.get(self._row, 0)
-
-    @rel.setter
-    def rel(self, pose: torch.Tensor | None) -> None:
-        self._rows.set(self._row, 0, pose)
-
-    @property
-    def odom(self) -> torch.Tensor | None:
-        return self._rows.get(self._row, 1)
-
-    @odom.setter
-    def odom(self, pose: torch.Tensor | None) -> None:
-        self._rows.set(self._row, 1, pose)
 
 
 class DenseOdometry:
