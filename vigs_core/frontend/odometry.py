@@ -42,10 +42,10 @@ from __future__ import annotations
 
 import itertools
 import time
-from concurrent.futures import Future
-from concurrent.futures import TimeoutError as FutureTimeout
 from collections import defaultdict
 from collections.abc import Callable
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 
 import cv2
@@ -178,6 +178,7 @@ class PoseRows:
         return None if np.isnan(pose[3, 3]) else torch.from_numpy(pose.copy())
 
     def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
+        """Store ``pose`` (4, 4) as float64 in ``slot`` of ``row`` (None unsets it)."""
         self._blocks[row // self._chunk][row % self._chunk, slot] = (
             np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy())
 
