@@ -324,3 +324,20 @@ def test_keyframes_spilled_to_disk_give_the_same_map(tmp_path):
         assert torch.allclose(mapper.keyframes[1].depth, 1.1 * depth.where(torch.isfinite(depth), 0.0), atol=1e-5)
         maps.append(mapper.map)
     assert torch.equal(maps[0].means, maps[1].means) and torch.equal(maps[0].colors, maps[1].colors)
+
+
+def test_stop_cuts_the_keyframe_in_hand_short_so_shutdown_is_bounded():
+    """At shutdown the worker stops after the optimisation step in hand, not after all of a keyframe's steps
+    (the node's drain budget starts before the stop): the keyframe is in the map, its steps cut short."""
+    mapper = _mapper(iterations=2000)
+    _feed(mapper, [0.0])
+    mapper.run_async()
+    try:
+        while not mapper.keyframes:   # inserted; its optimisation steps are running
+            time.sleep(0.005)
+        time.sleep(0.1)
+    finally:
+        t0 = time.monotonic()
+        mapper.stop()
+    assert time.monotonic() - t0 < 2.0
+    assert mapper.stats.keyframes == 1 and mapper.stats.cut_short == 1 and 0 < mapper.stats.steps < 2000

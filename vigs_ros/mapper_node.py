@@ -26,6 +26,7 @@ Topics (names are parameters; see params/mapper.yaml):
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -57,8 +58,9 @@ PARAMS = [
     ParamSpec("map_frame", "map", "frame of the Gaussian means"),
     ParamSpec("map_path", "out/ros/map.ply", "where ~/save_map and shutdown write the map (PLY + .json sidecar)"),
     ParamSpec("save_on_shutdown", True, "save the map to map_path at shutdown"),
-    ParamSpec("shutdown_drain_s", 20.0, "at shutdown, apply queued keyframes / pose updates for at most this long "
-                                        "(s; keep it below the launcher's 30 s shutdown timeout)", range=Range(0)),
+    ParamSpec("shutdown_drain_s", 20.0, "at shutdown, finish the step in hand and apply queued keyframes / pose "
+                                        "updates for at most this long (s; keep it below the launcher's 30 s "
+                                        "shutdown timeout)", range=Range(0)),
     ParamSpec("delta_period_s", 1.0, "period of Gaussian delta publication (s)", range=Range(0, lo_open=True)),
     ParamSpec("cloud_topic", "/vigs/map_cloud", "output sensor_msgs/PointCloud2 of the Gaussian means (RGB)"),
     ParamSpec("cloud_period_s", 2.0, "period of the map point cloud (s), sent only when the map changed; <= 0: off"),
@@ -178,9 +180,10 @@ class MapperNode(VigsNode):
         the map. Reports go to stderr: the context (and so /rosout) may already be shut down."""
         if self.mapper is None:
             return
+        deadline = time.monotonic() + float(self.p["shutdown_drain_s"])   # the worker's last step counts too
         self.mapper.stop()
         queued = self.mapper.pending() + self.mapper.deferred()
-        left = self.mapper.drain(float(self.p["shutdown_drain_s"]))
+        left = self.mapper.drain(max(deadline - time.monotonic(), 0.0))
         if queued:
             print(f"[mapper] at shutdown {queued - left} queued mapping events applied (keyframes inserted without "
                   f"refinement)" + (f", {left} not applied in shutdown_drain_s" if left else ""), file=sys.stderr)

@@ -343,7 +343,8 @@ class GaussianMapper:
         self._inbox.wait_empty()
 
     def stop(self) -> None:
-        """Stop the worker thread after the event it is applying (queued events stay queued)."""
+        """Stop the worker thread after the event it is applying, a keyframe's insertion cut short after the
+        optimisation step in hand (queued events stay queued)."""
         self._stop.set()
         if self._worker is not None:
             self._worker.join()
@@ -501,7 +502,7 @@ class GaussianMapper:
             self._append(new)
         steps = 0
         for kf_step in self._schedule(kf.id) if optimise else ():
-            if self._inbox.full():
+            if self._inbox.full() or self._stop.is_set():   # behind, or shutting down: the rest waits
                 break
             with self._lock:
                 self._optimise_on(self.keyframes[kf_step], c.lambda_depth)

@@ -142,8 +142,8 @@ class OnlineMapping:
 
     def finish(self, drain: bool = True, interrupted_drain_s: float = 10.0) -> None:
         """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain
-        (``drain`` False, an interrupted run: stop it after the event it is applying and insert what is queued
-        without refinement, for at most ``interrupted_drain_s``: :meth:`GaussianMapper.drain`)."""
+        (``drain`` False, an interrupted run: stop it after the optimisation step it is taking and insert what is
+        queued without refinement, for at most ``interrupted_drain_s``: :meth:`GaussianMapper.drain`)."""
         self._send_pose_updates()
         for k in sorted(self.odometry.keyframes):
             if k not in self._sent:
