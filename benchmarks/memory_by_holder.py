@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
             gc.collect()
             seen: set = set()
             sizes = {name: reachable_bytes(obj, seen) for name, obj in holders(odo, mapping).items()}
-            snapshots[frames] = {"keyframes": len(odo.keyframes), "rss": psutil.Process().memory_info().rss, "malloc": malloc_in_use(),
+            snapshots[frames] = {"keyframes": len(odo.keyframes), "rss": psutil.Process().memory_info().rss,
+                                 "malloc": malloc_in_use(),
                                  "gaussians": len(mapping.mapper.map) if mapping is not None else 0,
                                  "sizes": sizes}
         return step(self, odo, T_BS, frames, mapping)

@@ -178,7 +178,8 @@ def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
     """The ``ros__parameters`` of ``node_name`` in a params file (``/**`` entries first, then the node's).
 
     Raises:
-        ValueError: the file is not a mapping of ``<node>: {ros__parameters: {...}}``.
+        ValueError: the file is not a mapping of ``<node>: {ros__parameters: {...}}``
+        (:func:`vigs_core.system.config.read_params_yaml`).
     """
     from vigs_core.system.config import read_params_yaml
 
@@ -187,11 +188,8 @@ def load_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key in ("/**", node_name, "/" + node_name):
         section = data.get(key)
-        if section is None:
-            continue
-        if not isinstance(section, dict) or "ros__parameters" not in section:
-            raise ValueError(f"{path}: section {key!r} must hold a 'ros__parameters' mapping")
-        out.update(_flatten(section["ros__parameters"] or {}))
+        if section is not None:
+            out.update(_flatten(section["ros__parameters"] or {}))
     return out
 
 
@@ -212,8 +210,6 @@ def check_params_file(path: str | Path, node_specs: dict[str, list[ParamSpec]]) 
         name = str(node).lstrip("/")
         if node != "/**" and name not in node_specs:
             raise ValueError(f"{path}: unknown node {node!r}; expected /** or one of {sorted(node_specs)}")
-        if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
-            raise ValueError(f"{path}: section {node!r} must hold a 'ros__parameters' mapping")
         specs = [s for v in node_specs.values() for s in v] if node == "/**" else node_specs[name]
         by_name = {s.name: s for s in specs}
         for key, value in _flatten(section.get("ros__parameters") or {}).items():

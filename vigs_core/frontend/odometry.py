@@ -325,24 +325,24 @@ class DenseOdometry:
         ``scales``), rotations unchanged: what re-expressing the reference keyframes' depth in new units (a
         loop correction's depth scale, the IMU alignment's metric scale) does to them. One batched product;
         the new tensors replace the old ones (never edited in place)."""
-        owners = [f for f in self.frames if f.ref is not None and f.rel is not None and f.ref in scales]
+        owners = [(f, rel) for f in self.frames if f.ref in scales and (rel := f.rel) is not None]
         tracked = [kf for kf in self.keyframes.values() if kf.tracked is not None and kf.tracked[0] in scales]
         if not owners and not tracked:
             return
-        rels = torch.stack([f.rel for f in owners] + [kf.tracked[1] for kf in tracked]).clone()
-        factor = torch.tensor([scales[f.ref] for f in owners] + [scales[kf.tracked[0]] for kf in tracked],
+        rels = torch.stack([rel for _, rel in owners] + [kf.tracked[1] for kf in tracked])
+        factor = torch.tensor([scales[f.ref] for f, _ in owners] + [scales[kf.tracked[0]] for kf in tracked],
                               dtype=rels.dtype)
         rels[:, :3, 3] *= factor[:, None]
         out = rels.unbind(0)
-        for f, rel in zip(owners, out):
+        for (f, _), rel in zip(owners, out):
             f.rel = rel
         for kf, rel in zip(tracked, out[len(owners):]):
             kf.tracked = (kf.tracked[0], rel)
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""
-        sel = [f for f in self.frames if f.odom is not None]
-        return np.array([f.t_ns for f in sel], dtype=np.int64), self._stack([f.odom for f in sel])
+        sel = [(f.t_ns, odom) for f in self.frames if (odom := f.odom) is not None]
+        return np.array([t for t, _ in sel], dtype=np.int64), self._stack([odom for _, odom in sel])
 
     def keyframe_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (K,) ns and world->camera poses (K, 4, 4) of all keyframes."""

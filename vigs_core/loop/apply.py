@@ -10,6 +10,7 @@ PGBA's snapshot get the correction of the newest keyframe of the snapshot (they 
 """
 from __future__ import annotations
 
+import itertools
 from typing import Any, Iterable
 
 import torch
@@ -66,8 +67,8 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
             kf.pose, kf.disp = pose, kf.disp / scale
             updates[k] = (T, scale)
     odometry.scale_relative_translations({k: scale for k, (_, scale) in updates.items()})
-    posed = [f for f in odometry.frames if f.odom is not None and f.ref is not None][-2:]
-    for f in posed:
+    posed = itertools.islice((f for f in reversed(odometry.frames) if f.ref is not None and f.odom is not None), 2)
+    for f in list(posed):
         f.odom = f.rel @ odometry.keyframes[f.ref].pose
     return updates
 

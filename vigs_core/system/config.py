@@ -139,8 +139,9 @@ def apply_overrides(obj: Any, values: dict, where: str = "") -> Any:
 
 
 def read_params_yaml(path: str | Path) -> dict:
-    """The top-level mapping of a ROS 2 parameter file (``<node>: {ros__parameters: ...}``); ValueError naming the
-    file for malformed YAML or another top level."""
+    """The top-level mapping of a ROS 2 parameter file, every entry a node section ``<node>: {ros__parameters:
+    {...}}`` (or ``/**``); ValueError naming the file for malformed YAML, another top level or an entry of
+    another shape (a graph-wide file: each node reads its own section, so a misplaced one would go unread)."""
     try:
         content = yaml.safe_load(Path(path).read_text()) or {}
     except yaml.YAMLError as err:
@@ -148,6 +149,9 @@ def read_params_yaml(path: str | Path) -> dict:
     if not isinstance(content, dict):
         raise ValueError(f"{path}: expected a mapping '<node>: {{ros__parameters: ...}}', got "
                          f"{type(content).__name__}")
+    for key, value in content.items():
+        if not (isinstance(value, dict) and isinstance(value.get("ros__parameters", 0), (dict, type(None)))):
+            raise ValueError(f"{path}: top-level {key!r} is not a '<node>: ros__parameters:' section")
     return content
 
 
@@ -159,10 +163,7 @@ def load_config(path: str | Path | None = None, node: str = NODE_NAME) -> Pipeli
     if path is None:
         return cfg
     content = read_params_yaml(path)
-    for key, value in content.items():   # a graph-wide file: other nodes' sections are theirs, but sections
-        if not (isinstance(value, dict) and "ros__parameters" in value):   # of another shape are mistakes
-            raise ValueError(f"{path}: top-level {key!r} is not a '<node>: ros__parameters:' section")
-    section = content.get(node, {}).get("ros__parameters") if isinstance(content.get(node), dict) else None
+    section = content.get(node, {}).get("ros__parameters")
     if not isinstance(section, dict):
         raise ValueError(f"{path}: no '{node}: ros__parameters:' mapping (found top-level keys {sorted(content)})")
     try:

@@ -250,8 +250,8 @@ class VisualInertialOdometry(DenseOdometry):
             kf.pose, kf.disp = al.pose(kf.pose), al.disparity(kf.disp)
         self.scale_relative_translations(dict.fromkeys(self.keyframes, al.scale))
         for f in self.frames:
-            if f.odom is not None:
-                f.odom = al.pose(f.odom)
+            if (odom := f.odom) is not None:
+                f.odom = al.pose(odom)
 
     # ------------------------------------------------------------------ still start
     def process(self, t_ns: int, image: np.ndarray,
