@@ -286,6 +286,7 @@ def summarize(r: dict, gt) -> dict:
         "mapper_steps_per_kf": mapper.get("steps_per_keyframe"), "mapper_cut_short": mapper.get("keyframes_cut_short"),
         "mapper_deferred": mapper.get("keyframes_deferred"),
         "node_lat": (rep.get("odometry_latency_ms") or {}).get("p95"),
+        "node_wait": (rep.get("tracking_wait_ms") or {}).get("p95"),
         "imu_node_lat": imu_node.get("odometry_latency_ms"),
         "wall_s": r["wall_s"],
         "cpu": {k: 100 * v / r["wall_s"] for k, v in sorted(r["cpu_s"].items())},
@@ -356,7 +357,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name[:28]:<28} {label:<13} wall {f['wall_s']:.0f} s; CPU of one core and peak RSS: {cpu}; "
               f"p95 by the probe's callbacks: odometry {f['lat_p95_callback']:.1f}, IMU odometry "
               f"{f['imu_lat_p95_callback']:.2f} ms; inside the nodes: odometry p95 {f['node_lat']} ms (frontend: "
-              f"callback to publish), IMU odometry {f['imu_node_lat']}; deepest queues {f['queue_max']}; images lost before the "
+              f"callback to publish; callback to tracking start p95 {f['node_wait']} ms), IMU odometry "
+              f"{f['imu_node_lat']}; deepest queues {f['queue_max']}; images lost before the "
               f"frontend {f['lost']}; mapper keyframes "
               f"{f['mapper_kf']}, mapped {f['mapper_mapped']} ({f['mapper_steps_per_kf']} steps each, "
               f"{f['mapper_cut_short']} cut short), deferred {f['mapper_deferred']}, idle steps "

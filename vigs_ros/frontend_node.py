@@ -228,6 +228,7 @@ class FrontendNode(VigsNode):
         self.stop = threading.Event()
         self.processed: list[tuple[int, int | None]] = []   # (stamp, yield point or None): frames_processed.txt
         self.latency_s: deque[float] = deque(maxlen=10000)   # image arrival -> odometry publish (wall s)
+        self.wait_s: deque[float] = deque(maxlen=10000)      # of which image arrival -> tracking starts
         self.queue_max = {"imu_samples": 0, "frames": 0}     # deepest queues seen by the tracking thread
         self.image_gaps = StampGaps()
         # the pose outputs kept current on the tracking thread (the only one that changes the odometry)
@@ -420,6 +421,7 @@ class FrontendNode(VigsNode):
         self.track(t_ns, image, encoding, header, arrived)
 
     def track(self, t_ns: int, image, encoding: str, header, arrived: float) -> None:
+        self.wait_s.append(time.monotonic() - arrived)
         try:
             out = self.engine.track(t_ns, image, encoding, lambda T_wc: self.publish_pose(t_ns, T_wc, arrived))
         except Exception as exc:  # a core failure on one frame must not take the graph down: report it
@@ -575,15 +577,19 @@ class FrontendNode(VigsNode):
         if not self.p["output_dir"]:
             return
         out = pathlib.Path(self.p["output_dir"])
-        latency_ms = np.array(self.latency_s) * 1e3
+        latency_ms, wait_ms = np.array(self.latency_s) * 1e3, np.array(self.wait_s) * 1e3
+        percentiles = (("p50", lambda x: np.percentile(x, 50)), ("p95", lambda x: np.percentile(x, 95)),
+                       ("max", np.max))
         report = {"frames_in": self.status.counters.get("images_in", 0), "frames_tracked":
                   self.status.counters.get("frames_tracked", 0),
                   "frames_skipped": self.status.counters.get("frames_skipped", 0),
                   "frames_lost_before_node": self.status.counters.get("frames_lost_before_node", 0),
                   "frames_pending_at_shutdown": len(self.sync), "queue_max": dict(self.queue_max),
-                  "odometry_latency_ms": {k: round(float(f(latency_ms)), 2) for k, f in (
-                      ("p50", lambda x: np.percentile(x, 50)), ("p95", lambda x: np.percentile(x, 95)),
-                      ("max", np.max))} if len(latency_ms) else None,
+                  "odometry_latency_ms": {k: round(float(f(latency_ms)), 2) for k, f in percentiles}
+                  if len(latency_ms) else None,
+                  # the part before tracking starts: waiting for the IMU to cover the frame, or for the thread
+                  "tracking_wait_ms": {k: round(float(f(wait_ms)), 2) for k, f in percentiles}
+                  if len(wait_ms) else None,
                   "counters": dict(sorted(self.status.counters.items())), "info": dict(self.status.info)}
         if self.engine is not None:
             report.update(save_trajectories(self.engine, self.T_bc, out))
