@@ -75,3 +75,22 @@ def test_a_pose_after_a_loop_correction_maps_back_to_the_uncorrected_world():
     np.testing.assert_allclose(T_corrected[:3, 3], T_new[:3, 3] + c * T_new[:3, :3] @ (
         np.linalg.inv(T_wc.numpy()) @ np.append(T_old[:3, 3], 1.0))[:3], atol=1e-9)   # the keyframe moved to T_new
     assert engine.pose_before_correction(T_corrected, 4) is None
+
+
+def test_only_keyframes_whose_tensors_were_replaced_are_compared(monkeypatch):
+    """A long run keeps every keyframe; per frame only those the core changed (new tensors) are examined."""
+    engine, T_wc = engine_with_keyframe()
+    kf = engine.odometry.keyframes[3]
+    for k in range(4, 204):   # old keyframes, published once
+        engine.odometry.keyframes[k] = Keyframe(k, 10 + k, None, kf.pose.clone(), kf.disp.clone())
+    engine.report_keyframes(FrameOutput(20, None), metric=False)
+    examined = []
+    inverse = FrontendEngine._rigid_inverse
+    monkeypatch.setattr(FrontendEngine, "_rigid_inverse", staticmethod(lambda T, out: examined.append(1) or
+                                                                       inverse(T, out)))
+    T = T_wc.clone()
+    T[0, 3] += 0.01
+    engine.odometry.keyframes[150].pose = se3_inverse(T)   # BA replaced one keyframe's pose
+    out = FrameOutput(30, None)
+    engine.report_keyframes(out, metric=False)
+    assert len(examined) == 1 and list(out.updated_keyframes) == [150]

@@ -21,6 +21,7 @@ import torch
 from msg_adapters.image import to_mono8
 from msg_adapters.vigs import KeyframeData
 from vigs_core.camera import CameraModel
+from vigs_core.geometry import nearest_rotation
 from vigs_core.loop import apply_to_odometry
 from vigs_core.system import OdometryStream, PipelineConfig
 from vigs_core.system.mapping import depth_scale_change
@@ -82,6 +83,9 @@ class FrontendEngine:
         self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
         self.pose_update_tolerance = pose_update_tolerance
         self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
+        # the pose and disparity tensors last compared with what was published: the core replaces a keyframe's
+        # tensors when it changes them, never edits them, so a keyframe whose tensors are these is unchanged
+        self._compared: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._metric = False
         self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
 
@@ -125,9 +129,14 @@ class FrontendEngine:
 
     def report_keyframes(self, out: FrameOutput, metric: bool) -> None:
         """Fill ``out.new_keyframes`` (with their states) and ``out.updated_keyframes`` from the core's
-        keyframes against what was published before."""
+        keyframes against what was published before. Only keyframes whose tensors were replaced since the last
+        call are compared: a long run keeps thousands of keyframes, of which BA changes only the window's."""
         for kf_id in sorted(self.odometry.keyframes):
             kf = self.odometry.keyframes[kf_id]
+            compared = self._compared.get(kf_id)
+            if compared is not None and compared[0] is kf.pose and compared[1] is kf.disp:
+                continue
+            self._compared[kf_id] = (kf.pose, kf.disp)
             T_wc = self._rigid_inverse(kf.pose.numpy(), out)
             if kf_id not in self._published:
                 disparity = kf.disp.numpy().astype(np.float32).reshape(self.grid_shape)
@@ -206,9 +215,8 @@ class FrontendEngine:
         """``T_wc``, with the rotation projected onto SO(3) (nearest rotation, SVD); records the deviation."""
         R = T_cw[:3, :3]
         out.rotation_error = max(out.rotation_error, float(np.abs(R.T @ R - np.eye(3)).max()))
-        u, _, vt = np.linalg.svd(R)
         T = T_cw.copy()
-        T[:3, :3] = u @ vt
+        T[:3, :3] = nearest_rotation(R)
         return invert(T)
 
 
