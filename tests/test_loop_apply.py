@@ -73,6 +73,21 @@ def test_apply_to_odometry_moves_keyframes_depths_and_frames_by_the_similarity()
     np.testing.assert_allclose(odo.frames[-1].odom.numpy(), after[-1].numpy(), atol=1e-12)
 
 
+def test_corrected_poses_are_rigid_though_the_corrections_are_a_little_off():
+    """Keyframes take one loop correction after another: the corrected rotation is projected onto SO(3), so the
+    rounding of each Sim(3) product does not pile up in the keyframe poses."""
+    from vigs_core.loop.apply import corrected_poses
+
+    strain = torch.tensor([[1.0, 0.5, 0.0], [0.5, -1.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    T_WC = torch.eye(4, dtype=torch.float64)
+    for k in range(200):
+        C = sim3_exp(torch.tensor([0.1, -0.2, 0.05, 0.02, -0.01, 0.03, 0.01], dtype=torch.float64))
+        C[:3, :3] = C[:3, :3] @ (torch.eye(3, dtype=torch.float64) + 1e-6 * strain)   # slightly off a rotation
+        T_WC, c = corrected_poses(C, T_WC)
+        R = T_WC[:3, :3]
+        assert float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max()) < 1e-12, k
+
+
 def test_corrections_for_leaves_out_older_ids():
     C = {3: torch.eye(4, dtype=D), 4: 2 * torch.eye(4, dtype=D)}
     out = corrections_for([1, 3, 4, 7], C)

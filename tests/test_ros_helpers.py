@@ -62,6 +62,27 @@ def test_rep105_odom_reset_to_map_jumps_once_then_stays_continuous():
     np.testing.assert_allclose(T_map_odom, jump, atol=1e-12)
 
 
+def test_rep105_map_to_odom_stays_rigid_over_many_corrections():
+    """A long run's loop corrections arrive one after another, each estimate a little off SO(3) (float rounding of
+    Sim(3) products): map -> odom, their running product, stays a rigid transform (the odometry message's check
+    refused it after 32 corrections of a 300 s run, and every later frame failed)."""
+    from msg_adapters.common import check_pose_matrix
+
+    frames = Rep105Frames()
+    T = np.eye(4)
+    frames.update(T)
+    off = np.eye(4)
+    off[:3, :3] *= 1.0 + 2e-6   # the pose mapped back through a correction, its rotation 2e-6 off
+    for k in range(300):
+        T_before = T @ pose(10 + k, 0.02)
+        T = pose(1000 + k, 0.01) @ T_before
+        frames.mark_correction()
+        T_map_odom, T_odom_base = frames.update(T, T_map_base_before_correction=T_before @ off)
+        R = T_map_odom[:3, :3]
+        assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12, k
+    check_pose_matrix(T_odom_base, "odom -> base_link")
+
+
 def test_matrix_from_param_validates():
     T = matrix_from_param(list(pose(4).reshape(-1)), "T")
     assert T.shape == (4, 4)

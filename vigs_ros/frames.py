@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vigs_core.geometry import nearest_rotation
+
 
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a (4, 4) rigid transform: ``[R^T, -R^T t]``."""
@@ -46,9 +48,7 @@ def matrix_from_param(values, name: str) -> np.ndarray:
     R = T[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0 or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise ValueError(f"parameter {name}: not a rigid transform (rotation block orthonormal, last row 0 0 0 1)")
-    # Re-orthonormalise (calibration files print 8-10 digits).
-    u, _, vt = np.linalg.svd(R)
-    T[:3, :3] = u @ vt
+    T[:3, :3] = nearest_rotation(R)   # re-orthonormalise (calibration files print 8-10 digits)
     return T
 
 
@@ -86,6 +86,8 @@ class Rep105Frames:
             # odom -> base continues by the uncorrected motion since the last estimate
             T_odom_base = self._last_odom_base @ invert(self._last_map_base) @ before
             self.T_map_odom = T_map_base @ invert(T_odom_base)
+            # a product of every correction so far: keep it rigid, or its rounding error grows with each one
+            self.T_map_odom[:3, :3] = nearest_rotation(self.T_map_odom[:3, :3])
             self._corrected = False
         T_odom_base = invert(self.T_map_odom) @ T_map_base
         self._last_map_base = T_map_base.copy()

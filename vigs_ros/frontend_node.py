@@ -497,11 +497,15 @@ class FrontendNode(VigsNode):
         T_map_odom, T_odom_base = self.frames.update(body_from_camera(T_wc, self.T_bc), before)
         twist = self.engine.body_twist(t_ns, T_wc) if self.engine.status in METRIC_STATUSES else None
         v_b, w_b = twist if twist is not None else (np.zeros(3), np.zeros(3))
-        self.pub_odom.publish(pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"],
-                                               velocity_world=T_odom_base[:3, :3] @ v_b, angular_velocity_body=w_b,
-                                               pose_covariance=self.covariance.pose(T_odom_base[:3, 3],
-                                                                                    self.engine.status),
-                                               twist_covariance=self.covariance.twist(twist is not None)))
+        try:
+            odometry = pose_to_odometry(self.types, t_ns, T_odom_base, p["odom_frame"], p["base_frame"],
+                                        velocity_world=T_odom_base[:3, :3] @ v_b, angular_velocity_body=w_b,
+                                        pose_covariance=self.covariance.pose(T_odom_base[:3, 3], self.engine.status),
+                                        twist_covariance=self.covariance.twist(twist is not None))
+        except ValueError as exc:   # this runs inside the core's frame: an output it refuses must not abort that
+            self.status.warn("odometry_out", f"odometry of the frame at {t_ns} ns not published: {exc}")
+            return
+        self.pub_odom.publish(odometry)
         self.latency_s.append(time.monotonic() - arrived)
         self.status.count("odometry_out")
         if p["publish_tf"]:

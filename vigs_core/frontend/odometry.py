@@ -56,7 +56,7 @@ from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
 from vigs_core.frontend.keyframe_policy import KeyframePolicy, KeyframePolicyConfig
-from vigs_core.geometry import se3_exp, se3_inverse, se3_log
+from vigs_core.geometry import nearest_rotation, se3_exp, se3_inverse, se3_log
 from vigs_core.ranges import bounded
 from vigs_core.solver import BAConfig, EdgeSet, Intrinsics, align_pose, bundle_adjust, reproject
 
@@ -670,8 +670,7 @@ class DenseOdometry:
         pred = step @ posed[1].odom
         # re-orthonormalise: each extrapolation doubles the rounding error of the rotation, which otherwise
         # grows from frame to frame until the poses overflow
-        U, _, Vh = torch.linalg.svd(pred[:3, :3])
-        pred[:3, :3] = U @ Vh
+        pred[:3, :3] = nearest_rotation(pred[:3, :3])
         return pred
 
     def _track(self, image: np.ndarray) -> None:

@@ -15,6 +15,7 @@ Float32 and float64 both work; use float64 for anything that accumulates (IMU, s
 from vigs_core.geometry.so3 import (
     hat,
     vee,
+    nearest_rotation,
     so3_exp,
     so3_log,
     so3_left_jacobian,

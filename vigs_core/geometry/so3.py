@@ -37,6 +37,17 @@ def hat(v: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     return (v @ constant_like(_HAT_BASIS, v)).reshape(*v.shape[:-1], 3, 3)
 
 
+def nearest_rotation(m: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """The rotation nearest to ``m`` (..., 3, 3) in the Frobenius norm, ``U V^T`` of its SVD ``U S V^T``
+    (orthogonal Procrustes; ``m`` near a rotation, det > 0). Products of rotations gather rounding error from
+    one to the next: re-projecting keeps long-lived poses rigid. A torch tensor or a NumPy array, as given."""
+    if isinstance(m, np.ndarray):
+        u, _, vt = np.linalg.svd(m)
+        return u @ vt
+    u, _, vh = torch.linalg.svd(m)
+    return u @ vh
+
+
 def vee(m: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`hat`: (..., 3, 3) -> (..., 3); uses the antisymmetric part of ``m``."""
     return 0.5 * torch.stack(

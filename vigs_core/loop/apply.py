@@ -15,18 +15,20 @@ from typing import Any, Iterable
 
 import torch
 
-from vigs_core.geometry import se3_inverse, sim3_scale
+from vigs_core.geometry import nearest_rotation, se3_inverse, sim3_scale
 
 F64 = torch.float64
 
 
 def corrected_poses(C: torch.Tensor, T_WC: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rigid poses ``T'_WC`` (..., 4, 4) and depth scales ``c`` (...) of keyframes after the corrections ``C``
-    (..., 4, 4): ``S = C T_WC``, ``c = det(S_R)^(1/3)``, ``T'_WC = [S_R / c | S_t]``."""
+    (..., 4, 4): ``S = C T_WC``, ``c = det(S_R)^(1/3)``, ``T'_WC = [S_R / c | S_t]`` with the rotation block
+    projected onto SO(3): keyframes take one correction after another over a long run, and each product's
+    rounding error would otherwise stay in their poses."""
     S = C.to(F64) @ torch.as_tensor(T_WC, dtype=F64)
     c = sim3_scale(S)
     T = S.clone()
-    T[..., :3, :3] = S[..., :3, :3] / c[..., None, None]
+    T[..., :3, :3] = nearest_rotation(S[..., :3, :3] / c[..., None, None])
     return T, c
 
 
