@@ -3,6 +3,7 @@ anchored pose/scale updates, asynchronous operation, saving."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -177,6 +178,9 @@ def test_drain_at_shutdown_inserts_every_queued_keyframe_without_refinement():
     mapper = _mapper(iterations=20)
     _feed(mapper, angles)
     assert mapper.drain(0.0) == len(angles)
+    hurry = threading.Event()
+    hurry.set()   # the launcher's SIGTERM: stop draining now
+    assert mapper.drain(60.0, hurry) == len(angles)
     assert mapper.drain(60.0) == 0 and mapper.stats.keyframes == len(angles)
     assert set(mapper.map.anchor_ids.tolist()) == set(range(len(angles)))
     assert float((mapper.render(orbit_pose(0.45)).alpha > 0.5).float().mean()) > 0.9   # it covers the view

@@ -311,13 +311,14 @@ class GaussianMapper:
             count += 1
         return count
 
-    def drain(self, seconds: float) -> int:
-        """At shutdown (worker stopped): apply the queued events within ``seconds``, each queued or deferred
-        keyframe inserted from its depth without optimisation steps (one render for the densification mask
-        instead of ``iterations`` steps), so the saved map holds every keyframe received, unrefined where there
-        was no time to refine it. Returns how many events (deferred keyframes included) are left."""
+    def drain(self, seconds: float, hurry: threading.Event | None = None) -> int:
+        """At shutdown (worker stopped): apply the queued events within ``seconds`` (and until ``hurry`` is set,
+        e.g. by the launcher's escalation to SIGTERM), each queued or deferred keyframe inserted from its depth
+        without optimisation steps (one render for the densification mask instead of ``iterations`` steps), so
+        the saved map holds every keyframe received, unrefined where there was no time to refine it. Returns
+        how many events (deferred keyframes included) are left."""
         deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not (hurry is not None and hurry.is_set()):
             event = self._inbox.take()
             if event is None:
                 break
