@@ -110,7 +110,7 @@ from vigs_core.camera import CameraModel
 from vigs_core.io import write_frame_schedule
 from vigs_core.ranges import Range
 from vigs_core.system import PipelineConfig
-from vigs_core.system.pipeline import Checkpoints, pose_outputs, write_pose_outputs
+from vigs_core.system.pipeline import Checkpoints, frame_statuses, pose_outputs, write_pose_outputs
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
 from vigs_core.vio.odometry_covariance import OdometryCovariance, OdometryCovarianceConfig
@@ -595,6 +595,7 @@ class FrontendNode(VigsNode):
                   "tracking_wait_ms": {k: round(float(f(wait_ms)), 2) for k, f in percentiles}
                   if len(wait_ms) else None,
                   "counters": dict(sorted(self.status.counters.items())), "info": dict(self.status.info)}
+        self.checkpoints.wait()   # no checkpoint may replace the final outputs
         if self.engine is not None:
             report.update(save_trajectories(self.engine, self.T_bc, out))
         report["inertial_initialized_at_s"] = None if self.realigned_at_ns is None else self.realigned_at_ns * 1e-9
@@ -618,7 +619,7 @@ def save_trajectories(engine: FrontendEngine, T_bc: np.ndarray, out: pathlib.Pat
     odo = engine.odometry
     out.mkdir(parents=True, exist_ok=True)
     poses = pose_outputs(odo, T_bc)
-    write_pose_outputs(out, odo, poses)
+    write_pose_outputs(out, poses, frame_statuses(odo))
     counts = {"frames_posed": len(poses["trajectory"][0]), "odometry_poses": len(poses["odometry"][0]),
               "keyframes": len(odo.keyframes), "frames": len(odo.frames),
               "timings_s": {k: round(v, 3) for k, v in odo.timings.items()}}

@@ -177,6 +177,17 @@ class PoseRows:
         pose = self._blocks[row // self._chunk][row % self._chunk, slot]
         return None if np.isnan(pose[3, 3]) else torch.from_numpy(pose.copy())
 
+    def take(self, rows: np.ndarray, slot: int) -> np.ndarray:
+        """Copies (M, 4, 4) of the poses in ``slot`` of ``rows`` (M,), NaN where unset: one gather per chunk
+        instead of one copy per frame (the outputs read every frame's pose)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        out = np.empty((len(rows), 4, 4))
+        block, offset = np.divmod(rows, self._chunk)
+        for b in np.unique(block):
+            sel = block == b
+            out[sel] = self._blocks[b][offset[sel], slot]
+        return out
+
     def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
         """Store ``pose`` (4, 4) as float64 in ``slot`` of ``row`` (None unsets it)."""
         self._blocks[row // self._chunk][row % self._chunk, slot] = (
@@ -295,29 +306,32 @@ class DenseOdometry:
         """Times (N,) ns and world->camera poses (N, 4, 4) of every posed frame, relative to the final
         keyframe poses, with the next keyframe's correction spread over the frames in between (module
         docstring)."""
-        correction = {}   # reference keyframe a -> (next keyframe b, Log(R^-1 R*)) (6,)
-        for b in self.keyframes.values():
-            if b.tracked is not None and b.tracked[0] in self.keyframes:
-                a = self.keyframes[b.tracked[0]]
-                final = b.pose @ se3_inverse(a.pose)
-                correction[a.id] = (b, se3_log(se3_inverse(b.tracked[1]) @ final))
-        t, rel, fix, ref = [], [], [], []
-        for f in self.frames:
-            if f.ref is None:
-                continue
-            a = self.keyframes[f.ref]
-            t.append(f.t_ns)
-            rel.append(f.rel)
-            ref.append(a.pose)
-            if f.keyframe or a.id not in correction:
-                fix.append(torch.zeros(6, dtype=torch.float64))
-                continue
-            b, xi = correction[a.id]
-            fix.append(xi * min(max((f.t_ns - a.t_ns) / (b.t_ns - a.t_ns), 0.0), 1.0))
-        if not t:
+        pairs = [(self.keyframes[b.tracked[0]], b) for b in self.keyframes.values()
+                 if b.tracked is not None and b.tracked[0] in self.keyframes]
+        correction = {}   # reference keyframe a -> (next keyframe b, Log(R^-1 R*)) (6,), in one batch
+        if pairs:
+            final = torch.stack([b.pose for _, b in pairs]) @ se3_inverse(torch.stack([a.pose for a, _ in pairs]))
+            tracked = torch.stack([b.tracked[1] for _, b in pairs])
+            correction = {a.id: (b, xi) for (a, b), xi in zip(pairs, se3_log(se3_inverse(tracked) @ final))}
+        posed = [f for f in self.frames if f.ref is not None]
+        if not posed:
             return np.zeros(0, dtype=np.int64), self._stack([])
-        poses = torch.stack(rel) @ se3_exp(torch.stack(fix)) @ torch.stack(ref)
-        return np.array(t, dtype=np.int64), poses
+        n = len(posed)
+        t = np.fromiter((f.t_ns for f in posed), np.int64, n)
+        is_kf = np.fromiter((f.keyframe for f in posed), bool, n)
+        ids, which = np.unique(np.fromiter((f.ref for f in posed), np.int64, n), return_inverse=True)
+        refs = [self.keyframes[int(k)] for k in ids]
+        t_a = np.array([a.t_ns for a in refs], dtype=np.int64)[which]
+        t_b = np.array([correction[a.id][0].t_ns if a.id in correction else a.t_ns + 1 for a in refs],
+                       dtype=np.int64)[which]   # + 1: any span will do where there is no correction (xi = 0)
+        xi = torch.stack([correction[a.id][1] if a.id in correction else torch.zeros(6, dtype=torch.float64)
+                          for a in refs])[torch.from_numpy(which)]
+        # the next keyframe's correction, spread linearly in time between the two (none on a keyframe's own frame)
+        frac = np.where(is_kf, 0.0, np.clip((t - t_a) / (t_b - t_a), 0.0, 1.0))
+        rel = torch.from_numpy(self._pose_rows.take([f._row for f in posed], 0))
+        ref_pose = torch.stack([a.pose for a in refs])[torch.from_numpy(which)]
+        poses = rel @ se3_exp(xi * torch.from_numpy(frac)[:, None]) @ ref_pose
+        return t, poses
 
     def scale_relative_translations(self, scales: dict[int, float]) -> None:
         """Multiply the translation of every pose kept relative to a keyframe -- each frame's ``rel`` and each
@@ -341,8 +355,11 @@ class DenseOdometry:
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""
-        sel = [(f.t_ns, odom) for f in self.frames if (odom := f.odom) is not None]
-        return np.array([t for t, _ in sel], dtype=np.int64), self._stack([odom for _, odom in sel])
+        n = len(self.frames)
+        t = np.fromiter((f.t_ns for f in self.frames), np.int64, n)
+        odom = self._pose_rows.take(np.fromiter((f._row for f in self.frames), np.int64, n), 1)
+        posed = ~np.isnan(odom[:, 3, 3])
+        return t[posed], torch.from_numpy(odom[posed])
 
     def keyframe_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (K,) ns and world->camera poses (K, 4, 4) of all keyframes."""

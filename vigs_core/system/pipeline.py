@@ -249,49 +249,82 @@ def pose_outputs(odo, T_BS: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarra
             "odometry": (to, world_from(T_odo) @ T_SB), "keyframes": (tk, world_from(T_kf) @ T_SB)}
 
 
-def write_pose_outputs(out: Path, odo, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
-    """Write ``poses`` (:func:`pose_outputs`) as TUM files and, with the IMU, ``frame_status.txt`` into ``out``,
-    each atomically."""
+def write_pose_outputs(out: Path, poses: dict[str, tuple[np.ndarray, np.ndarray]],
+                       frame_status: dict[int, str] | None) -> None:
+    """Write ``poses`` (:func:`pose_outputs`) as TUM files and, with the IMU, ``frame_status`` (the odometry's
+    ``{stamp_ns: status}``; None without the IMU) as ``frame_status.txt`` into ``out``, each atomically."""
     from vigs_core.io import write_frame_status, write_tum
 
     for name, (t, T) in poses.items():
         _replace_atomically(out / f"{name}.txt", lambda path, t=t, T=T: write_tum(path, poses_to_trajectory(t, T)))
-    if isinstance(odo, VisualInertialOdometry):
-        _replace_atomically(out / "frame_status.txt", lambda path: write_frame_status(path, odo.frame_status))
+    if frame_status is not None:
+        _replace_atomically(out / "frame_status.txt", lambda path: write_frame_status(path, frame_status))
+
+
+def frame_statuses(odo) -> dict[int, str] | None:
+    """A copy of the odometry's per-frame statuses (:attr:`VisualInertialOdometry.frame_status`); None without
+    the IMU."""
+    return dict(odo.frame_status) if isinstance(odo, VisualInertialOdometry) else None
 
 
 class Checkpoints:
     """Outputs kept current while the run goes on (so a killed process or a power loss leaves the run so far):
     every ``period_s`` of wall time the pose outputs and a partial report (``partial: true``, as ``report_name``),
     every ``map_period_s`` the map as well; 0 switches either off. Call :meth:`step` from the thread that
-    changes the odometry."""
+    changes the odometry: it computes the poses there, and a thread of its own writes the files (their text
+    grows with the run: about 17 us a frame, half a second per checkpoint after 30 minutes at 20 Hz, which
+    tracking would otherwise wait for). A checkpoint due while the previous one is still being written waits
+    for the next period, and a write error is raised at the next :meth:`step`. Call :meth:`wait` before writing
+    the final outputs, so that no checkpoint replaces them."""
 
     def __init__(self, out: Path | None, period_s: float, map_period_s: float,
                  report_name: str = "report.json") -> None:
         self.out, self.period_s, self.map_period_s, self.report_name = out, period_s, map_period_s, report_name
         now = time.monotonic()
         self._next, self._next_map = now + period_s, now + map_period_s
+        self._writer: threading.Thread | None = None
+        self._error: BaseException | None = None
 
     def step(self, odo, T_BS: np.ndarray, frames: int, mapping) -> None:
         if self.out is None:
             return
+        self._raise_error()
         now = time.monotonic()
-        if self.period_s > 0 and now >= self._next:
+        if self.period_s > 0 and now >= self._next and not (self._writer is not None and self._writer.is_alive()):
             self._next = now + self.period_s
-            self.out.mkdir(parents=True, exist_ok=True)
             poses = pose_outputs(odo, T_BS)
-            write_pose_outputs(self.out, odo, poses)
             partial = {"partial": True, "frames": frames, "frames_posed": int(len(poses["trajectory"][0])),
                        "keyframes": len(odo.keyframes)}
             if isinstance(odo, VisualInertialOdometry):
                 partial["vio"] = {k: v for k, v in odo.report().items() if k in ("stage", "metric", "frame_status",
                                                                                   "failures")}
-            _replace_atomically(self.out / self.report_name,
-                                lambda path: path.write_text(json.dumps(partial, indent=2)))
+            self._writer = threading.Thread(target=self._write, args=(poses, frame_statuses(odo), partial),
+                                            name="checkpoint-writer", daemon=True)
+            self._writer.start()
         if mapping is not None and self.map_period_s > 0 and now >= self._next_map:
             self._next_map = now + self.map_period_s
             self.out.mkdir(parents=True, exist_ok=True)
             mapping.save(self.out / "map.ply")
+
+    def wait(self) -> None:
+        """Wait for the checkpoint being written, if any."""
+        if self._writer is not None:
+            self._writer.join()
+            self._writer = None
+
+    def _write(self, poses: dict, frame_status: dict[int, str] | None, partial: dict) -> None:
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            write_pose_outputs(self.out, poses, frame_status)
+            _replace_atomically(self.out / self.report_name,
+                                lambda path: path.write_text(json.dumps(partial, indent=2)))
+        except BaseException as exc:   # handed to the caller's thread (step, wait)
+            self._error = exc
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
 
 
 def _finish_recording(recorder, odo, seq: InputSequence, poses: dict, report: dict, mapping) -> None:
@@ -449,6 +482,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     finally:
         stop.restore()
         reader.close()
+        checkpoints.wait()   # no checkpoint may replace the final outputs
     if bar is not None:
         bar.close()
     if stop.requested or failure is not None:
@@ -503,7 +537,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        write_pose_outputs(out, odo, poses)
+        write_pose_outputs(out, poses, frame_statuses(odo))
         if velocities is not None:
             np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
                        header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
