@@ -28,6 +28,7 @@ initialisation starts again on the current map (:meth:`StagedInitializer.restart
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -328,7 +329,8 @@ class VisualInertialEstimator:
         no trustworthy check yet since the alignment."""
         return self.config.enabled and not self.scale_checked and self.hold_delay_passed(t_ns)
 
-    def check_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> WorldAlignment | None:
+    def check_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor,
+                    between: Callable[[], None] | None = None) -> WorldAlignment | None:
         """The scale check: the inertial-only problem of the initialisation
         (:func:`~vigs_core.imu.inertial_init.inertial_only_init`: gravity direction, scale, velocities and biases
         with the poses fixed) over the keyframes since the map became metric (at most ``3 inertial_init_keyframes``
@@ -337,7 +339,8 @@ class VisualInertialEstimator:
         (at most ``inertial_init_keyframes`` tries; then the check is given up until the next alignment).
         A trustworthy one whose ``|log scale|`` exceeds ``max_scale_drift`` is a failure (:meth:`fail`). Otherwise,
         with ``scale_refinement`` (ORB-SLAM3's, Campos et al., T-RO 2021, Sec. V-C), the alignment the caller must
-        apply to the whole map (velocities here are already updated; the biases stay the VI-BA's), else None."""
+        apply to the whole map (velocities here are already updated; the biases stay the VI-BA's), else None.
+        ``between`` is called after each iteration of the solve (a live caller's yield point)."""
         c = self.config
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0][-3 * c.inertial_init_keyframes:]
@@ -349,7 +352,7 @@ class VisualInertialEstimator:
                 cfg = replace(cfg, pose_position_std=c.scale_check_pose_noise[0],
                               pose_rotation_std=c.scale_check_pose_noise[1])
             res = inertial_only_init(se3_inverse(poses[sel].to(F64)), stamps_ns[sel], self.imu, self.noise,
-                                     self.T_cb, cfg)
+                                     self.T_cb, cfg, between=between)
         except torch.linalg.LinAlgError:
             return None
         self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "scale_check",

@@ -215,7 +215,8 @@ class VisualInertialOdometry(DenseOdometry):
         alignment = self.vio.on_keyframe(ids, stamps, poses)
         if alignment is None and self.vio.scale_check_due(int(stamps[-1])):
             since = self.vio.metric_since_ns
-            refined = self.vio.check_scale(ids, stamps, poses)
+            # frames may be tracked during the solve: the check changes the state only after it
+            refined = self.vio.check_scale(ids, stamps, poses, between=self._yield_point)
             if not self.vio.metric:   # the scale did not hold since the alignment
                 self._mark_lost(since)
             if refined is not None:
