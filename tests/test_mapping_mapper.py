@@ -170,6 +170,35 @@ def test_densification_adds_gaussians_exactly_where_the_map_is_thin():
     assert 0.05 * int(grid.sum()) < int(want.sum()) < 0.8 * int(grid.sum())  # the views partly overlap
 
 
+def test_a_reader_gets_the_map_between_two_steps_of_a_busy_worker():
+    """The node's executor reads the map (deltas, point cloud) while the worker optimises queued keyframes step
+    after step: the reader gets the lock at the next step boundary (the unfair lock let a busy worker keep it, and
+    a node asked to stop waited for it)."""
+    mapper = _mapper(iterations=400)
+    steps = [0]
+    optimise = mapper._optimise_on
+
+    def counted(*args, **kwargs):
+        steps[0] += 1
+        return optimise(*args, **kwargs)
+
+    mapper._optimise_on = counted
+    _feed(mapper, [0.1 * i for i in range(6)])
+    mapper.run_async()
+    try:
+        while steps[0] < 5:   # the worker is at work
+            time.sleep(0.01)
+        behind = []
+        for _ in range(10):
+            before = steps[0]
+            mapper.pop_delta()
+            behind.append(steps[0] - before)
+            time.sleep(0.02)
+        assert max(behind) <= 2, behind
+    finally:
+        mapper.stop()
+
+
 def test_drain_at_shutdown_inserts_every_queued_keyframe_without_refinement():
     """At shutdown the queued keyframes are inserted from their depth without optimisation steps: every one of
     them anchors Gaussians and the map covers a view between them, at a fraction of the refined insertion's cost; a zero

@@ -31,6 +31,7 @@ optimisation steps.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import random
 import threading
@@ -135,6 +136,7 @@ class MapperConfig:
 
 
 _IDLE_PAUSE_S = 0.01   # between idle steps (GaussianMapper._work)
+_READER_POLL_S = 2e-4  # the worker's poll while a reader waits for the map lock (GaussianMapper._let_readers_in)
 
 
 @dataclass
@@ -259,6 +261,8 @@ class GaussianMapper:
         self._next_id = 0
         self._rng = random.Random(c.seed)
         self._lock = threading.RLock()
+        self._readers = 0   # threads waiting for the lock to read the map (:meth:`_reading`)
+        self._readers_lock = threading.Lock()
         self._inbox = MapperInbox(self.config.max_backlog)
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
@@ -357,7 +361,7 @@ class GaussianMapper:
         """Render the map from ``T_WC`` (4, 4) at ``scale`` x the camera (default: the render scale).
         Colours are clamped to [0, 1]."""
         cam = self.render_camera if scale is None else RenderCamera.from_camera(self.camera, scale)
-        with self._lock:
+        with self._reading():
             out = self._render(self.map, torch.as_tensor(T_WC, dtype=torch.float64), cam)
         out.color = out.color.clamp(0.0, 1.0)
         return out
@@ -379,12 +383,12 @@ class GaussianMapper:
 
     def snapshot(self) -> GaussianMap:
         """A detached copy of the current map."""
-        with self._lock:
+        with self._reading():
             return self.map.detached()
 
     def pop_delta(self) -> MapDelta:
         """Gaussians added / changed / removed since the previous call (added wins over changed)."""
-        with self._lock:
+        with self._reading():
             added = self.map.select(self._new)
             changed = self.map.select(self._dirty & ~self._new)
             removed = torch.cat(self._removed) if self._removed else torch.zeros(0, dtype=torch.int64)
@@ -395,7 +399,7 @@ class GaussianMapper:
 
     def save(self, path: str | Path) -> Path:
         """Write the map as ``path`` (3DGS PLY) plus the keyframe sidecar; returns the sidecar path."""
-        with self._lock:
+        with self._reading():
             gmap = self.map.detached()
             poses = {k: kf.T_WC for k, kf in self.keyframes.items()}
             stamps = {k: kf.timestamp_ns for k, kf in self.keyframes.items() if kf.timestamp_ns is not None}
@@ -415,6 +419,29 @@ class GaussianMapper:
                 self._optimise_on(self.keyframes[self._rng.choice(ids)], lambda_depth=0.0)
 
     # ------------------------------------------------------------------ internals
+    @contextlib.contextmanager
+    def _reading(self):
+        """The map lock for a reader on another thread (a render, the node's deltas and point cloud, a save): the
+        worker lets it in between two optimisation steps (:meth:`_let_readers_in`). The lock is not fair: a
+        worker with queued keyframes took it again step after step, and a reader (the node's executor) could
+        wait for seconds, also when a signal asked the node to stop."""
+        with self._readers_lock:
+            self._readers += 1
+        try:
+            self._lock.acquire()
+        finally:
+            with self._readers_lock:
+                self._readers -= 1
+        try:
+            yield
+        finally:
+            self._lock.release()
+
+    def _let_readers_in(self) -> None:
+        """Worker, between steps (lock released): wait until the readers waiting for the lock have it."""
+        while self._readers:
+            time.sleep(_READER_POLL_S)
+
     def _work(self) -> None:
         idle = self.config.refine_when_idle
         while not self._stop.is_set():
@@ -430,6 +457,7 @@ class GaussianMapper:
                 self._apply(event)
             finally:
                 self._inbox.done()
+            self._let_readers_in()
 
     def _apply(self, event: tuple) -> None:
         if event[0] == "keyframe":
@@ -507,6 +535,7 @@ class GaussianMapper:
                 break
             with self._lock:
                 self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
+            self._let_readers_in()
             steps += 1
         with self._lock:
             self._prune()
