@@ -321,11 +321,12 @@ class DenseOdometry:
         is_kf = np.fromiter((f.keyframe for f in posed), bool, n)
         ids, which = np.unique(np.fromiter((f.ref for f in posed), np.int64, n), return_inverse=True)
         refs = [self.keyframes[int(k)] for k in ids]
+        zero = (None, torch.zeros(6, dtype=torch.float64))   # no next keyframe: no correction
+        nexts = [correction.get(a.id, zero) for a in refs]
         t_a = np.array([a.t_ns for a in refs], dtype=np.int64)[which]
-        t_b = np.array([correction[a.id][0].t_ns if a.id in correction else a.t_ns + 1 for a in refs],
-                       dtype=np.int64)[which]   # + 1: any span will do where there is no correction (xi = 0)
-        xi = torch.stack([correction[a.id][1] if a.id in correction else torch.zeros(6, dtype=torch.float64)
-                          for a in refs])[torch.from_numpy(which)]
+        # any span will do where there is no correction (xi = 0)
+        t_b = np.array([a.t_ns + 1 if b is None else b.t_ns for a, (b, _) in zip(refs, nexts)], dtype=np.int64)[which]
+        xi = torch.stack([x for _, x in nexts])[torch.from_numpy(which)]
         # the next keyframe's correction, spread linearly in time between the two (none on a keyframe's own frame)
         frac = np.where(is_kf, 0.0, np.clip((t - t_a) / (t_b - t_a), 0.0, 1.0))
         rel = torch.from_numpy(self._pose_rows.take([f._row for f in posed], 0))

@@ -205,8 +205,8 @@ def inertial_only_init(
         T_cb: (4, 4) body-to-camera extrinsic (metric).
         bias_prior: (6,) mean ``(b_g, b_a)`` of the bias priors (default zero), e.g. the gyro bias of a
             static initialisation.
-        between: called after each iteration (a live caller's yield point: over 60 keyframes the solve takes
-            about 1.5 s of CPU, during which a live frontend would otherwise track nothing).
+        between: called after each iteration (a live caller's yield point: over the scale check's keyframes the
+            solve is long enough for a live frontend to miss frames otherwise).
     """
     cfg = config or InertialInitConfig()
     f = dict(dtype=torch.float64, device=T_wc.device)

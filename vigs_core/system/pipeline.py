@@ -272,8 +272,7 @@ class Checkpoints:
     every ``period_s`` of wall time the pose outputs and a partial report (``partial: true``, as ``report_name``),
     every ``map_period_s`` the map as well; 0 switches either off. Call :meth:`step` from the thread that
     changes the odometry: it computes the poses there, and a thread of its own writes the files (their text
-    grows with the run: about 17 us a frame, half a second per checkpoint after 30 minutes at 20 Hz, which
-    tracking would otherwise wait for). A checkpoint due while the previous one is still being written waits
+    grows with the run, and tracking would otherwise wait for it). A checkpoint due while the previous one is still being written waits
     for the next period, and a write error is raised at the next :meth:`step`. Call :meth:`wait` before writing
     the final outputs, so that no checkpoint replaces them."""
 
@@ -318,7 +317,7 @@ class Checkpoints:
             write_pose_outputs(self.out, poses, frame_status)
             _replace_atomically(self.out / self.report_name,
                                 lambda path: path.write_text(json.dumps(partial, indent=2)))
-        except BaseException as exc:   # handed to the caller's thread (step, wait)
+        except Exception as exc:   # raised on the caller's thread at the next step
             self._error = exc
 
     def _raise_error(self) -> None:
