@@ -223,6 +223,7 @@ def run_graph(bag: Path, out: Path, pace: list[str], env: dict, compressed: bool
     reader.join(5)
     time.sleep(0.5)
     probe.close()
+    (out / "launch.log").write_text("".join(lines))   # the nodes' shutdown reports, kept with --keep
     report_path = out / "frontend_report.json"
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
     return {"rc": proc.returncode, "wall_s": wall, "probe": probe, "cpu_s": cpu, "rss_mb": rss,

@@ -85,3 +85,52 @@ def test_an_error_during_a_signal_shutdown_is_told_from_a_real_one():
             assert shutting_down(context, wait_s=1.0) is not stays_up
         finally:
             context.try_shutdown()
+
+
+IDLE_NODE = """
+import sys
+from rclpy.signals import uninstall_signal_handlers
+from vigs_ros.runtime import VigsNode, run_nodes
+
+class Idle(VigsNode):
+    def __init__(self, **kwargs):
+        super().__init__("idle_on_sim_time", **kwargs)
+        self.create_timer(1.0, lambda: None)   # simulated time and no /clock: it never fires
+        if sys.argv[1] == "lost":
+            uninstall_signal_handlers()   # rclpy's shutdown and wake-up of the executor never come
+        print("ready", flush=True)
+
+    def close(self):
+        print("closed", flush=True)
+
+sys.exit(run_nodes([Idle], ["idle", "--ros-args", "-p", "use_sim_time:=true"]))
+"""
+
+
+def test_a_node_waiting_on_stopped_simulated_time_exits_on_a_signal_without_rclpy_waking_it():
+    """After a replay /clock stops, so a node's timers never fire; rclpy's signal handler wakes the executor, but
+    that wake-up was sometimes lost and the node waited for the launcher's SIGKILL. The executor's wait is bounded
+    (runtime.SIGNAL_POLL_S): SIGINT and SIGTERM end the run and close the node even without rclpy's handlers."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from ros_helpers import isolated_env
+
+    env = isolated_env()
+    for mode, sig in (("lost", signal.SIGINT), ("lost", signal.SIGTERM), ("rclpy", signal.SIGINT)):
+        proc = subprocess.Popen([sys.executable, "-c", IDLE_NODE, mode], env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        try:
+            assert proc.stdout.readline().strip() == "ready"
+            time.sleep(0.5)
+            t0 = time.monotonic()
+            os.kill(proc.pid, sig)
+            out, _ = proc.communicate(timeout=10)
+            took = time.monotonic() - t0
+        finally:
+            proc.kill()
+        assert proc.returncode == 0, (mode, sig, out)
+        assert "closed" in out, (mode, sig, out)
+        assert took < 3.0, (mode, sig, took)

@@ -177,6 +177,8 @@ def process_nice(default: int) -> ParamSpec:
                                                    "(needs root or CAP_SYS_NICE) takes it first")
 
 
+SIGNAL_POLL_S = 0.25  # longest wait of the executor between checks for a stop signal (run_nodes)
+
 _AUTOGROUP = "/proc/self/autogroup"
 
 
@@ -240,11 +242,15 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     from rclpy.signals import SignalHandlerOptions
 
     context = Context()
-    # rclpy's handlers shut the context down (the executor then ends) and chain to the Python handler installed
-    # before them. Python's default SIGINT handler would also raise KeyboardInterrupt at any point of the main
-    # thread, e.g. inside an executor's Task constructor (a half-made Task then prints "Exception ignored in
-    # Future.__del__" when collected): the shutdown alone ends the run.
-    signal.signal(signal.SIGINT, lambda *_: None)
+    # rclpy's handlers shut the context down and wake the executor, then chain to the Python handlers installed
+    # before them, which only set ``stop``: Python's default SIGINT handler would raise KeyboardInterrupt at any
+    # point of the main thread, e.g. inside an executor's Task constructor (a half-made Task then prints
+    # "Exception ignored in Future.__del__" when collected). The executor waits at most SIGNAL_POLL_S at a time:
+    # rclpy's wake-up was sometimes lost (a node on simulated time whose /clock had stopped then waited for the
+    # launcher's SIGKILL), and Python runs ``stop``'s handler only when the main thread is back from the wait.
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     rclpy.init(args=sys.argv if args is None else args, context=context,
                signal_handler_options=SignalHandlerOptions.ALL)
     nodes: list[Node] = []
@@ -263,11 +269,12 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
                     else SingleThreadedExecutor(context=context))
         for node in nodes:
             executor.add_node(node)
-        executor.spin()
+        while context.ok() and not stop.is_set():
+            executor.spin_once(timeout_sec=SIGNAL_POLL_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:  # a node's callback or constructor failed: report it and exit non-zero
-        if not shutting_down(context):
+        if not (stop.is_set() or shutting_down(context)):
             traceback.print_exc()
             code = 1
         # else a signal shut the context down while the executor was taking a message (rclpy then raises
