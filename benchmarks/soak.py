@@ -16,7 +16,7 @@ squares, MB per minute of wall time; for ``vigs run`` only while it tracks, befo
 keyframe count, not while the mapper drains or the loop-closure child exits), and for ``vigs run`` the slope per
 keyframe; then the output sizes.
 
-    vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph]
+    vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph | --no-run]
                     [--params FILE] [--bag BAG] [--json OUT]
 """
 from __future__ import annotations
@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sample-s", type=float, default=10.0, help="RSS sampling period (s)")
     p.add_argument("--cache", default=str(ROOT / "out" / "soak"), help="the rendered bag and the run outputs")
     p.add_argument("--no-graph", action="store_true", help="only vigs run")
+    p.add_argument("--no-run", action="store_true", help="only the graph")
     p.add_argument("--params", help="vigs run's --params (the graph runs the shipped parameters)")
     p.add_argument("--bag", help="run this bag instead of the procedural sequence (e.g. a hybrid EuRoC bag: a "
                                  "scene that is mostly new, for the growth per keyframe and per Gaussian)")
@@ -154,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     cache = Path(args.cache)
     bag = Path(args.bag) if args.bag else render(args.duration, cache)
     results = {}
-    runs = [("vigs run", lambda b, o, s: run_vigs_run(b, o, s, args.params))]
+    runs = [] if args.no_run else [("vigs run", lambda b, o, s: run_vigs_run(b, o, s, args.params))]
     runs += [] if args.no_graph else [("graph", run_graph)]
     for name, runner in runs:
         out = Path(tempfile.mkdtemp(prefix=name.replace(" ", "_") + "_", dir=cache))

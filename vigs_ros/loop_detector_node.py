@@ -31,6 +31,7 @@ from msg_adapters.image import to_mono8
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import PoseUpdateData, msg_to_keyframe, msg_to_pose_update, pose_update_to_msg
 from vigs_core.frontend import DISFlowConfig, DISFlowEstimator, PixelGrid
+from vigs_core.heap import map_large_blocks
 from vigs_core.loop import KeyframeView, LoopClosure, LoopConfig, corrected_pose, corrections_for
 from vigs_core.ranges import Range
 from vigs_core.solver import Intrinsics
@@ -160,6 +161,9 @@ class LoopDetectorNode(VigsNode):
 
 
 def main(args: list[str] | None = None) -> int:
+    # a process of its own, like vigs run's loop-closure child: the same malloc policy (vigs_core.heap); not in
+    # __init__, since a composed graph shares its process with the mapper, which wants the opposite one
+    map_large_blocks()
     return run_nodes([LoopDetectorNode], args)
 
 
