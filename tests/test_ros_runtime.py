@@ -134,3 +134,50 @@ def test_a_node_waiting_on_stopped_simulated_time_exits_on_a_signal_without_rclp
         assert proc.returncode == 0, (mode, sig, out)
         assert "closed" in out, (mode, sig, out)
         assert took < 3.0, (mode, sig, took)
+
+
+SLOW_CLOSE_NODE = """
+import sys
+from vigs_ros.runtime import VigsNode, run_nodes
+
+class SlowClose(VigsNode):
+    def __init__(self, **kwargs):
+        super().__init__("slow_close", **kwargs)
+        self.timer = self.create_timer(0.05, self.ready)   # spinning
+
+    def ready(self):
+        self.timer.cancel()
+        print("ready", flush=True)
+
+    def close(self):
+        print("closing", flush=True)
+        print("hurried" if self.hurry.wait(10.0) else "not hurried", flush=True)
+
+sys.exit(run_nodes([SlowClose], ["slow_close"]))
+"""
+
+
+def test_a_sigterm_during_close_hurries_the_node():
+    """The launcher's escalation: SIGINT stops the node, a SIGTERM while it is still closing (the mapper's drain)
+    sets its ``hurry``, so it saves what it has instead of being killed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from ros_helpers import isolated_env
+
+    proc = subprocess.Popen([sys.executable, "-c", SLOW_CLOSE_NODE], env=isolated_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.stdout.readline().strip() == "closing"
+        t0 = time.monotonic()
+        os.kill(proc.pid, signal.SIGTERM)
+        out, _ = proc.communicate(timeout=15)
+        took = time.monotonic() - t0
+    finally:
+        proc.kill()
+    assert out.split() == ["hurried"] and proc.returncode == 0, out
+    assert took < 3.0

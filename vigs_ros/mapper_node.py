@@ -25,9 +25,7 @@ Topics (names are parameters; see params/mapper.yaml):
 """
 from __future__ import annotations
 
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -178,27 +176,24 @@ class MapperNode(VigsNode):
         return path
 
     def close(self) -> None:
-        """Stop the worker, apply what is queued (within ``shutdown_drain_s``, or until a SIGTERM, the launcher's
-        escalation when the node is slow to exit; :meth:`GaussianMapper.drain`), save the map. Reports go to
-        stderr: the context (and so /rosout) may already be shut down."""
+        """Stop the worker, apply what is queued (within ``shutdown_drain_s``, or until ``hurry``: a SIGTERM, the
+        launcher's escalation when the node is slow to exit; :meth:`GaussianMapper.drain`), save the map. Reports
+        go to stderr: the context (and so /rosout) may already be shut down."""
         if self.mapper is None:
             return
         t0 = time.monotonic()
         deadline = t0 + float(self.p["shutdown_drain_s"])   # the worker's last step counts too
-        hurry = threading.Event()
-        if threading.current_thread() is threading.main_thread():   # Python runs signal handlers there
-            signal.signal(signal.SIGTERM, lambda *_: hurry.set())
         print(f"[mapper] shutting down: {self.mapper.pending() + self.mapper.deferred()} mapping events queued",
               file=sys.stderr, flush=True)
         self.mapper.stop()
         queued = self.mapper.pending() + self.mapper.deferred()
         t_stop = time.monotonic()
-        left = self.mapper.drain(max(deadline - time.monotonic(), 0.0), hurry)
+        left = self.mapper.drain(max(deadline - time.monotonic(), 0.0), self.hurry)
         t_drain = time.monotonic()
         if queued:
             print(f"[mapper] at shutdown {queued - left} queued mapping events applied (keyframes inserted without "
                   f"refinement)" + (f", {left} not applied in shutdown_drain_s" if left else "")
-                  + (" (SIGTERM: drain cut short)" if hurry.is_set() else ""), file=sys.stderr)
+                  + (" (SIGTERM: drain cut short)" if self.hurry.is_set() else ""), file=sys.stderr)
         if self.p["save_on_shutdown"]:
             path = self.save_map()
             print(f"[mapper] map saved: {path} ({len(self.mapper.map)} Gaussians; shutdown took "

@@ -51,6 +51,9 @@ class VigsNode(Node):
 
     def __init__(self, *args, **kwargs) -> None:
         self._threaded_subscriptions: list[ThreadedSubscription] = []
+        # set by run_nodes on a SIGTERM after the signal that stopped the node (a launcher's escalation when the
+        # node is slow to exit): ``close()`` should save what it has now
+        self.hurry = threading.Event()
         super().__init__(*args, **kwargs)
 
     def close(self) -> None:
@@ -248,12 +251,21 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
     # "Exception ignored in Future.__del__" when collected). The executor waits at most SIGNAL_POLL_S at a time:
     # rclpy's wake-up was sometimes lost (a node on simulated time whose /clock had stopped then waited for the
     # launcher's SIGKILL), and Python runs ``stop``'s handler only when the main thread is back from the wait.
+    # A SIGTERM once stopped sets the nodes' ``hurry`` (their ``close()`` runs on this thread, so it is handled).
     stop = threading.Event()
+    nodes: list[Node] = []
+
+    def on_signal(signum: int, _frame) -> None:
+        if signum == signal.SIGTERM and stop.is_set():
+            for node in nodes:
+                if isinstance(node, VigsNode):
+                    node.hurry.set()
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     rclpy.init(args=sys.argv if args is None else args, context=context,
                signal_handler_options=SignalHandlerOptions.ALL)
-    nodes: list[Node] = []
     code = 0
     try:
         for factory in factories:

@@ -282,7 +282,7 @@ class Checkpoints:
         now = time.monotonic()
         self._next, self._next_map = now + period_s, now + map_period_s
         self._writer: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._error: Exception | None = None
 
     def step(self, odo, T_BS: np.ndarray, frames: int, mapping) -> None:
         if self.out is None:
