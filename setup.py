@@ -20,7 +20,7 @@ setup(
         # colcon: the nodes' executables where `ros2 run vigs_ros <exec>` looks (pip puts console scripts in bin)
         (f"lib/{PACKAGE}", sorted(glob("ros_executables/*"))),
     ],
-    install_requires=["numpy", "scipy", "pyyaml", "opencv-python-headless", "torch"],
+    install_requires=["numpy", "scipy", "pyyaml", "opencv-python-headless", "torch", "numba"],
     zip_safe=True,
     entry_points={
         "console_scripts": [

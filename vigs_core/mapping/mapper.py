@@ -80,7 +80,8 @@ class MapperConfig:
         densify_depth_ratio: pixels whose measured depth is this fraction in front of the map get new Gaussians.
         prune_min_opacity: Gaussians less opaque than this are removed.
         prune_max_angular: Gaussians larger than this (std / distance to the anchor keyframe, rad) are removed.
-        backend: rasterizer backend: "auto", "torch" or "gsplat".
+        backend: rasterizer backend (:func:`~vigs_core.mapping.rasterizer.make_rasterizer`): "auto" (gsplat on CUDA,
+            else the compiled CPU compositing), "torch" (the reference), "numba" or "gsplat".
         tile_size: tile edge of the reference rasterizer, pixels.
         max_per_tile: Gaussians composited per tile at most (reference rasterizer).
         seed: seed of the keyframe sampler.

@@ -491,10 +491,13 @@ def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
 
 
 class TorchRasterizer:
-    """Pure-PyTorch tile-based reference rasterizer (CPU or GPU); see the module docstring."""
+    """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (CPU
+    only) the compositing step runs in the numba kernels of :mod:`vigs_core.mapping.composite_numba` instead of
+    the torch reference: the same projection, binning and model, with 3DGS's early stop per pixel."""
 
-    def __init__(self, settings: RenderSettings | None = None) -> None:
+    def __init__(self, settings: RenderSettings | None = None, compiled: bool = False) -> None:
         self.settings = settings or RenderSettings()
+        self.compiled = compiled
 
     def __call__(
         self,
@@ -540,18 +543,31 @@ class TorchRasterizer:
         table = torch.cat((mean2d, conic, opac[:, None], colors.index_select(0, front), z[:, None]), -1)
         table = _append_zero_row(table.index_select(0, sel))
 
-        origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
-        chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
-        layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
-        feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
+        if self.compiled:
+            from vigs_core.mapping.composite_numba import CompositeTiles
+
+            feats, alpha = CompositeTiles.apply(table, bins, n_tx, ts, camera.width, camera.height)
+        else:
+            origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
+            chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
+            layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
+            feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
         return RenderOutput(feats[..., :-1], feats[..., -1], alpha, front[sel[bins.binned]])
 
 
+def numba_available() -> bool:
+    """Whether the compiled CPU compositing (:mod:`vigs_core.mapping.composite_numba`) can be used."""
+    import importlib.util
+
+    return importlib.util.find_spec("numba") is not None
+
+
 def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = None) -> Rasterizer:
-    """The rasterizer named ``backend``: ``"torch"`` (reference), ``"gsplat"`` (CUDA only) or ``"auto"``
-    (gsplat when CUDA and the gsplat package are available, else the reference)."""
-    if backend not in ("auto", "torch", "gsplat"):
-        raise ValueError(f"rasterizer backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
+    """The rasterizer named ``backend``: ``"torch"`` (reference), ``"numba"`` (the reference with compiled CPU
+    compositing), ``"gsplat"`` (CUDA only) or ``"auto"`` (gsplat when CUDA and the gsplat package are available,
+    else numba when installed, else the reference)."""
+    if backend not in ("auto", "torch", "numba", "gsplat"):
+        raise ValueError(f"rasterizer backend must be 'auto', 'torch', 'numba' or 'gsplat', got {backend!r}")
     if backend in ("auto", "gsplat"):
         from vigs_core.mapping.gsplat_backend import GsplatRasterizer, gsplat_available
 
@@ -559,4 +575,6 @@ def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = Non
             return GsplatRasterizer(settings)
         if backend == "gsplat":
             raise RuntimeError("rasterizer backend 'gsplat' needs CUDA and the gsplat package; neither is usable here")
-    return TorchRasterizer(settings)
+    if backend == "numba" and not numba_available():
+        raise RuntimeError("rasterizer backend 'numba' needs the numba package (requirements/runtime.txt)")
+    return TorchRasterizer(settings, compiled=backend == "numba" or (backend == "auto" and numba_available()))

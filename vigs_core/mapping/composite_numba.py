@@ -1,0 +1,182 @@
+"""Compiled CPU tile compositing (numba): the compositing step of :class:`~vigs_core.mapping.rasterizer.
+TorchRasterizer`, with 3DGS's early stop (Kerbl et al. 2023, Sec. 6).
+
+Same model as the torch reference (:class:`~vigs_core.mapping.rasterizer._RasterizeTiles`): ``alpha = o
+exp(power)``, ``power = -(1/2) d^T Q d``, cut below 1/255, ``w_k = alpha_k T_k``, features ``sum_k w_k f_k``
+(RGB and depth), accumulated opacity ``1 - T_end``. A tile is composited slot by slot, front to back, each slot
+over all the tile's pixels in one branch-free loop that LLVM vectorises (selects instead of branches, a polynomial
+``exp``: a library call or a combined test stops the vectoriser). A pixel whose transmittance fell below
+``T_STOP`` takes no further slot (the slot that takes it there is still composited, so its remaining weights sum
+to less than ``T_STOP``: the images differ from the reference's by at most ``T_STOP`` times the largest feature);
+a tile stops when all its pixels have.
+
+Backward, back to front from the saved ``T_end`` and slot count per pixel (3DGS's order): ``T_k = T_{k+1} / (1 -
+alpha_k)``, ``S_k = sum_{j>k} w_j g.f_j`` and ``dL/dpower_k = w_k g.f_k - r_k (S_k - h T_end)`` with ``r_k =
+alpha_k / (1 - alpha_k)`` (the reference's formula); then ``dL/du = dL/dpower (a dx + b dy)``, ``dL/dv = dL/dpower
+(b dx + c dy)``, ``dL/d(a, b, c) = -dL/dpower (dx^2/2, dx dy, dy^2/2)``, ``dL/do = dL/dpower / o`` and ``dL/df_k =
+w_k g``, summed over the tile's pixels into the table rows. One thread; the interpreter lock is released while a
+kernel runs (``nogil``), so a tracking thread beside the mapper keeps running.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+
+from vigs_core.mapping.rasterizer import ALPHA_MIN
+
+T_STOP = 1e-4
+EXP_FLOOR = 20.0
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _exp_neg(x):
+    """``exp(x)`` for ``x <= 0`` without a library call, so the pixel loops vectorise: a degree-5 Taylor
+    polynomial of ``exp(x / 64)`` squared six times. Relative error below 1e-7 for ``x >= -6``, which covers
+    every ``alpha`` the 1/255 cut keeps (``o <= 0.99``); ``x`` is clamped at ``-EXP_FLOOR``."""
+    y = max(x, -EXP_FLOOR) * (1.0 / 64.0)
+    e = 1.0 + y * (1.0 + y * (0.5 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0)))))
+    e = e * e
+    e = e * e
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used):
+    P = ts * ts
+    gx, gy = np.empty(P), np.empty(P)  # tile-local pixel centres
+    T, used = np.empty(P), np.empty(P)
+    acc0, acc1, acc2, acc3 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
+    for p in range(P):
+        gx[p], gy[p] = p % ts, p // ts
+    for t in range(tiles.shape[0]):
+        ox, oy = (tiles[t] % n_tx) * ts, (tiles[t] // n_tx) * ts
+        for p in range(P):  # pixels beyond the image start done (T = 0)
+            T[p] = 1.0 if ox + p % ts < width and oy + p // ts < height else 0.0
+            used[p] = acc0[p] = acc1[p] = acc2[p] = acc3[p] = 0.0
+        for k in range(counts[t]):
+            row = index[t, k]
+            u, v = table[row, 0] - ox, table[row, 1] - oy
+            a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
+            f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
+            live = 0.0
+            for p in range(P):  # branch-free: vectorised over the tile's pixels
+                dx, dy = gx[p] - u, gy[p] - v
+                alpha = o * _exp_neg(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
+                alpha = alpha if alpha >= ALPHA_MIN else 0.0  # two selects: a combined test stops vectorisation
+                alpha = alpha if T[p] >= T_STOP else 0.0
+                w = alpha * T[p]
+                acc0[p] += w * f0
+                acc1[p] += w * f1
+                acc2[p] += w * f2
+                acc3[p] += w * f3
+                used[p] = k + 1.0 if alpha > 0.0 else used[p]
+                T[p] *= 1.0 - alpha
+                live += T[p]
+            if live < T_STOP:  # every pixel of the tile is done
+                break
+        for p in range(P):
+            px, py = ox + p % ts, oy + p // ts
+            if px < width and py < height:
+                out[py, px, 0], out[py, px, 1], out[py, px, 2], out[py, px, 3] = acc0[p], acc1[p], acc2[p], acc3[p]
+                t_end[py, px] = T[p]
+                n_used[py, px] = int(used[p])
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_used, g_feat, g_alpha, d_table):
+    P = ts * ts
+    gx, gy = np.empty(P), np.empty(P)
+    T, S, used, h = np.empty(P), np.empty(P), np.empty(P), np.empty(P)  # T_{k+1}, sum_{j>k} w_j g.f_j
+    g0, g1, g2, g3 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)  # dL/dfeatures
+    for p in range(P):
+        gx[p], gy[p] = p % ts, p // ts
+    for t in range(tiles.shape[0]):
+        ox, oy = (tiles[t] % n_tx) * ts, (tiles[t] // n_tx) * ts
+        last = 0
+        for p in range(P):
+            px, py = ox + p % ts, oy + p // ts
+            inside = px < width and py < height
+            T[p] = t_end[py, px] if inside else 1.0
+            used[p] = n_used[py, px] if inside else 0.0
+            h[p] = g_alpha[py, px] * t_end[py, px] if inside else 0.0
+            S[p] = 0.0
+            g0[p] = g_feat[py, px, 0] if inside else 0.0
+            g1[p] = g_feat[py, px, 1] if inside else 0.0
+            g2[p] = g_feat[py, px, 2] if inside else 0.0
+            g3[p] = g_feat[py, px, 3] if inside else 0.0
+            last = max(last, int(used[p]))
+        for k in range(last - 1, -1, -1):
+            row = index[t, k]
+            u, v = table[row, 0] - ox, table[row, 1] - oy
+            a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
+            f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
+            du = dv = da = db = dc = do = d0 = d1 = d2 = d3 = 0.0
+            for p in range(P):
+                dx, dy = gx[p] - u, gy[p] - v
+                alpha = o * _exp_neg(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
+                alpha = alpha if alpha >= ALPHA_MIN else 0.0
+                alpha = alpha if k < used[p] else 0.0
+                inv = 1.0 / (1.0 - alpha)
+                Tk = T[p] * inv
+                w = alpha * Tk
+                gf = g0[p] * f0 + g1[p] * f1 + g2[p] * f2 + g3[p] * f3
+                d_power = w * gf - alpha * inv * (S[p] - h[p])
+                S[p] += w * gf
+                T[p] = Tk
+                d0 += w * g0[p]
+                d1 += w * g1[p]
+                d2 += w * g2[p]
+                d3 += w * g3[p]
+                du += d_power * (a * dx + b * dy)
+                dv += d_power * (b * dx + c * dy)
+                da += d_power * dx * dx
+                db += d_power * dx * dy
+                dc += d_power * dy * dy
+                do += d_power
+            d_table[row, 0] += du
+            d_table[row, 1] += dv
+            d_table[row, 2] -= 0.5 * da
+            d_table[row, 3] -= db
+            d_table[row, 4] -= 0.5 * dc
+            d_table[row, 5] += do / o
+            d_table[row, 6] += d0
+            d_table[row, 7] += d1
+            d_table[row, 8] += d2
+            d_table[row, 9] += d3
+
+
+class CompositeTiles(torch.autograd.Function):
+    """``(features (H, W, F), alpha (H, W))`` of the table ``(N + 1, 6 + F)`` rows ``[u, v, a, b, c, o, f]``
+    composited over the tiles of a :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``, ``index``,
+    ``counts``); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
+    (RGB and depth, as the rasterizer composites)."""
+
+    @staticmethod
+    def forward(ctx, table, bins, n_tx, ts, width, height):
+        if table.shape[1] != 10:
+            raise ValueError(f"compiled compositing takes 4 features per Gaussian, got {table.shape[1] - 6}")
+        tab = table.detach().contiguous().numpy()
+        index, counts, tiles = (v.contiguous().numpy() for v in (bins.index, bins.counts, bins.tiles))
+        out = np.zeros((height, width, tab.shape[1] - 6), tab.dtype)
+        t_end = np.ones((height, width), tab.dtype)
+        n_used = np.zeros((height, width), np.int64)
+        _forward(tab, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used)
+        if ctx.needs_input_grad[0]:
+            ctx.kernel_args = (tab, index, counts, tiles, n_tx, ts, width, height, t_end, n_used)
+        return torch.from_numpy(out), torch.from_numpy(1.0 - t_end)
+
+    @staticmethod
+    def backward(ctx, g_feat, g_alpha):
+        tab = ctx.kernel_args[0]
+        height, width = ctx.kernel_args[7], ctx.kernel_args[6]
+        g_feat = (np.zeros((height, width, tab.shape[1] - 6), tab.dtype) if g_feat is None
+                  else g_feat.detach().contiguous().numpy())
+        g_alpha = (np.zeros((height, width), tab.dtype) if g_alpha is None
+                   else g_alpha.detach().contiguous().numpy())
+        d_table = np.zeros_like(tab)
+        _backward(*ctx.kernel_args, g_feat, g_alpha, d_table)
+        return torch.from_numpy(d_table), None, None, None, None, None
