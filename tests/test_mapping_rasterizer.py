@@ -13,6 +13,7 @@ from vigs_core.mapping.rasterizer import (
     RenderOutput,
     RenderSettings,
     TorchRasterizer,
+    bin_gaussians,
     ellipse_meets_tile,
     frustum_rows,
     make_rasterizer,
@@ -209,7 +210,7 @@ def test_compiled_compositing_matches_the_reference():
 def test_compiled_compositing_stops_early_within_its_bound():
     """Opaque scene: pixels stop compositing once ``T < T_STOP``; the image then differs from the reference by at
     most ``T_STOP`` times the largest feature (depth here), in float32 as the mapper renders."""
-    from vigs_core.mapping.composite_numba import T_STOP
+    from vigs_core.mapping.rasterizer_numba import T_STOP
 
     dtype = torch.float32
     cam = RenderCamera(40, 32, 30.0, 30.0, 19.5, 15.5)
@@ -245,3 +246,27 @@ def test_backends_on_a_cpu_machine():
     assert make_rasterizer("numba").compiled and not make_rasterizer("torch").compiled
     if not torch.cuda.is_available():
         assert make_rasterizer("auto").compiled, "on CPU the default backend composites with the compiled kernels"
+
+
+def test_compiled_binning_matches_the_reference():
+    from vigs_core.mapping import rasterizer_numba
+
+    dtype = torch.float64
+    cam = RenderCamera(61, 45, 40.0, 40.0, 30.2, 21.9)
+    means, quats, scales, opac, _ = _random_scene(300, dtype, seed=8)
+    means = means * torch.tensor([3.0, 3.0, 1.0], dtype=dtype)  # some beyond the image and its borders
+    mean2d, cov2d, z = project_gaussians(means, quats, scales * 0.5, _camera_pose(dtype), cam, 0.3)
+    det = cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2
+    conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
+    reach = 2.0 * torch.log(255.0 * opac)
+    half = torch.sqrt(reach[:, None] * cov2d[:, [0, 2]])
+    for max_per_tile in (5, 1000):  # overfull tiles cut to the front-most, and no cut
+        settings = RenderSettings(tile_size=8, max_per_tile=max_per_tile)
+        ref = bin_gaussians(mean2d, half, z, cam, settings, conic, reach)
+        got = rasterizer_numba.bin_gaussians(mean2d, half, z, conic, reach, 8, 6, 8, cam.width, cam.height,
+                                             max_per_tile)
+        assert ref.tiles.numel() > 10
+        for a, b in ((got.tiles, ref.tiles), (got.index, ref.index), (got.counts, ref.counts), (got.binned, ref.binned)):
+            assert torch.equal(a, b)
+    assert 0 < int(ref.binned.sum()) < ref.binned.numel()
+    assert int(ref.counts.max()) > 5, "the first pass must cut overfull tiles"

@@ -492,8 +492,8 @@ def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
 
 class TorchRasterizer:
     """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (CPU
-    only) the compositing step runs in the numba kernels of :mod:`vigs_core.mapping.composite_numba` instead of
-    the torch reference: the same projection, binning and model, with 3DGS's early stop per pixel."""
+    only) binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba` instead of
+    the torch reference: the same projection, tiles and model, with 3DGS's early stop per pixel."""
 
     def __init__(self, settings: RenderSettings | None = None, compiled: bool = False) -> None:
         self.settings = settings or RenderSettings()
@@ -509,6 +509,8 @@ class TorchRasterizer:
         T_CW: torch.Tensor,
         camera: RenderCamera,
     ) -> RenderOutput:
+        if self.compiled:
+            from vigs_core.mapping import rasterizer_numba
         s = self.settings
         dtype, device = means.dtype, means.device
         ts = s.tile_size
@@ -536,17 +538,21 @@ class TorchRasterizer:
             sel = inside.nonzero().squeeze(1)
         conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
         with torch.no_grad():
-            bins = bin_gaussians(
-                mean2d.detach()[sel], half[sel], z.detach()[sel], camera, s, conic.detach()[sel], reach[sel]
-            )
+            if self.compiled:
+                bins = rasterizer_numba.bin_gaussians(
+                    mean2d[sel], half[sel], z[sel], conic[sel], reach[sel], n_tx, n_ty, ts, camera.width,
+                    camera.height, s.max_per_tile,
+                )  # fmt: skip
+            else:
+                bins = bin_gaussians(
+                    mean2d.detach()[sel], half[sel], z.detach()[sel], camera, s, conic.detach()[sel], reach[sel]
+                )
         # one (N + 1, 10) table [mean2d, conic, opacity, colour, z]; the compositing gathers its tile slots
         table = torch.cat((mean2d, conic, opac[:, None], colors.index_select(0, front), z[:, None]), -1)
         table = _append_zero_row(table.index_select(0, sel))
 
         if self.compiled:
-            from vigs_core.mapping.composite_numba import CompositeTiles
-
-            feats, alpha = CompositeTiles.apply(table, bins, n_tx, ts, camera.width, camera.height)
+            feats, alpha = rasterizer_numba.CompositeTiles.apply(table, bins, n_tx, ts, camera.width, camera.height)
         else:
             origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
             chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
@@ -556,7 +562,7 @@ class TorchRasterizer:
 
 
 def numba_available() -> bool:
-    """Whether the compiled CPU compositing (:mod:`vigs_core.mapping.composite_numba`) can be used."""
+    """Whether the compiled CPU compositing (:mod:`vigs_core.mapping.rasterizer_numba`) can be used."""
     import importlib.util
 
     return importlib.util.find_spec("numba") is not None

@@ -1,5 +1,10 @@
-"""Compiled CPU tile compositing (numba): the compositing step of :class:`~vigs_core.mapping.rasterizer.
-TorchRasterizer`, with 3DGS's early stop (Kerbl et al. 2023, Sec. 6).
+"""Compiled CPU binning and tile compositing (numba) of :class:`~vigs_core.mapping.rasterizer.TorchRasterizer`,
+the compositing with 3DGS's early stop (Kerbl et al. 2023, Sec. 6).
+
+Binning (:func:`bin_gaussians`) gives the reference's :class:`~vigs_core.mapping.rasterizer.TileBins` without its
+sort of (tile, depth) pairs: the Gaussians are visited in depth order, so each tile's list fills front to back; a
+candidate tile of a Gaussian's bounding box is kept where its 1/255 ellipse meets the rectangle of the tile's pixel
+centres (the exact test of :func:`~vigs_core.mapping.rasterizer.ellipse_meets_tile`).
 
 Same model as the torch reference (:class:`~vigs_core.mapping.rasterizer._RasterizeTiles`): ``alpha = o
 exp(power)``, ``power = -(1/2) d^T Q d``, cut below 1/255, ``w_k = alpha_k T_k``, features ``sum_k w_k f_k``
@@ -23,7 +28,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from vigs_core.mapping.rasterizer import ALPHA_MIN
+from vigs_core.mapping.rasterizer import ALPHA_MIN, TileBins
 
 T_STOP = 1e-4
 EXP_FLOOR = 20.0
@@ -147,6 +152,66 @@ def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_use
             d_table[row, 7] += d1
             d_table[row, 8] += d2
             d_table[row, 9] += d3
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _meets(mx, my, a, b, c, r, x0, y0, x1, y1):
+    """Scalar :func:`~vigs_core.mapping.rasterizer.ellipse_meets_tile`: the minimum of ``d^T Q d`` over the
+    rectangle ``[x0, x1] x [y0, y1]`` (``d`` from the mean) is at most ``r``."""
+    lx, ly, hx, hy = x0 - mx, y0 - my, x1 - mx, y1 - my
+    dx = max(lx, 0.0) + min(hx, 0.0)
+    dy = max(ly, 0.0) + min(hy, 0.0)
+    dy_x = min(max(-b * dx / c, ly), hy)
+    dx_y = min(max(-b * dy / a, lx), hx)
+    f_x = (a * dx + 2.0 * b * dy_x) * dx + c * dy_x * dy_x
+    f_y = (a * dx_y + 2.0 * b * dy) * dx_y + c * dy * dy
+    return min(f_x, f_y) <= r
+
+
+@njit(cache=True, nogil=True)
+def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_per_tile, fill):
+    """Pass ``fill = False``: per tile the number of Gaussians that meet it; ``fill = True``: also their rows,
+    front to back, at most ``max_per_tile``. Returns ``(counts (n_tx n_ty,), index (n_tx n_ty, K), binned (N,))``."""
+    n = mean2d.shape[0]
+    counts = np.zeros(n_tx * n_ty, np.int64)
+    index = np.full((n_tx * n_ty, max_per_tile if fill else 0), n, np.int64)
+    binned = np.zeros(n, np.bool_)
+    for g in order:
+        mx, my = mean2d[g, 0], mean2d[g, 1]
+        tx0 = min(max(int(np.floor((mx - half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
+        tx1 = min(max(int(np.floor((mx + half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
+        ty0 = min(max(int(np.floor((my - half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
+        ty1 = min(max(int(np.floor((my + half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                x0, y0 = tx * ts, ty * ts
+                if not _meets(mx, my, conic[g, 0], conic[g, 1], conic[g, 2], reach[g], x0, y0,
+                              min(x0 + ts - 1, width - 1), min(y0 + ts - 1, height - 1)):
+                    continue
+                tile = ty * n_tx + tx
+                binned[g] = True
+                if fill and counts[tile] < max_per_tile:
+                    index[tile, counts[tile]] = g
+                if fill:
+                    counts[tile] = min(counts[tile] + 1, max_per_tile)
+                else:
+                    counts[tile] += 1
+    return counts, index, binned
+
+
+def bin_gaussians(mean2d, half_extent, depth, conic, reach, n_tx: int, n_ty: int, ts: int, width: int, height: int,
+                  max_per_tile: int) -> TileBins:
+    """:func:`~vigs_core.mapping.rasterizer.bin_gaussians` with the ellipse test, compiled (CPU tensors, no
+    gradient): the same tiles, ``K = min(max_per_tile, busiest tile)`` slots each, ordered by ``depth``."""
+    arrays = [t.detach().contiguous().numpy() for t in (mean2d, half_extent, conic, reach)]
+    order = np.argsort(depth.detach().numpy(), kind="stable")
+    counts, _, _ = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile, False)
+    k = int(min(max_per_tile, counts.max(initial=0)))
+    counts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max(k, 1), True)
+    tiles = np.flatnonzero(counts)
+    tiles = tiles[np.argsort(-counts[tiles], kind="stable")]
+    return TileBins(torch.from_numpy(tiles), torch.from_numpy(index[tiles]), torch.from_numpy(counts[tiles]),
+                    torch.from_numpy(binned))
 
 
 class CompositeTiles(torch.autograd.Function):
