@@ -32,15 +32,21 @@ from vigs_core.mapping.rasterizer import ALPHA_MIN, TileBins
 
 T_STOP = 1e-4
 EXP_FLOOR = 20.0
+# the kernels compute in float32 (the map's dtype): twice the lanes of float64 in the vectorised pixel loops.
+# Their constants are float32 scalars, as a Python float literal would promote the arithmetic to float64.
+_F = np.float32
+_0, _1, _HALF, _INV64 = _F(0.0), _F(1.0), _F(0.5), _F(1.0 / 64.0)
+_C2, _C3, _C4, _C5 = _F(1.0 / 2.0), _F(1.0 / 6.0), _F(1.0 / 24.0), _F(1.0 / 120.0)
+_ALPHA_MIN, _T_STOP, _EXP_FLOOR = _F(ALPHA_MIN), _F(T_STOP), _F(-EXP_FLOOR)
 
 
 @njit(cache=True, fastmath=True, inline="always")
 def _exp_neg(x):
     """``exp(x)`` for ``x <= 0`` without a library call, so the pixel loops vectorise: a degree-5 Taylor
-    polynomial of ``exp(x / 64)`` squared six times. Relative error below 1e-7 for ``x >= -6``, which covers
-    every ``alpha`` the 1/255 cut keeps (``o <= 0.99``); ``x`` is clamped at ``-EXP_FLOOR``."""
-    y = max(x, -EXP_FLOOR) * (1.0 / 64.0)
-    e = 1.0 + y * (1.0 + y * (0.5 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0)))))
+    polynomial of ``exp(x / 64)`` squared six times (relative error within float32 rounding for ``x >= -6``,
+    which covers every ``alpha`` the 1/255 cut keeps, ``o <= 0.99``); ``x`` is clamped at ``-EXP_FLOOR``."""
+    y = max(x, _EXP_FLOOR) * _INV64
+    e = _1 + y * (_1 + y * (_C2 + y * (_C3 + y * (_C4 + y * _C5))))
     e = e * e
     e = e * e
     e = e * e
@@ -52,36 +58,37 @@ def _exp_neg(x):
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used):
     P = ts * ts
-    gx, gy = np.empty(P), np.empty(P)  # tile-local pixel centres
-    T, used = np.empty(P), np.empty(P)
-    acc0, acc1, acc2, acc3 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
+    gx, gy = np.empty(P, _F), np.empty(P, _F)  # tile-local pixel centres
+    T, used = np.empty(P, _F), np.empty(P, _F)
+    acc0, acc1, acc2, acc3 = np.empty(P, _F), np.empty(P, _F), np.empty(P, _F), np.empty(P, _F)
     for p in range(P):
         gx[p], gy[p] = p % ts, p // ts
     for t in range(tiles.shape[0]):
         ox, oy = (tiles[t] % n_tx) * ts, (tiles[t] // n_tx) * ts
         for p in range(P):  # pixels beyond the image start done (T = 0)
-            T[p] = 1.0 if ox + p % ts < width and oy + p // ts < height else 0.0
-            used[p] = acc0[p] = acc1[p] = acc2[p] = acc3[p] = 0.0
+            T[p] = _1 if ox + p % ts < width and oy + p // ts < height else _0
+            used[p] = acc0[p] = acc1[p] = acc2[p] = acc3[p] = _0
         for k in range(counts[t]):
             row = index[t, k]
-            u, v = table[row, 0] - ox, table[row, 1] - oy
+            u, v = table[row, 0] - _F(ox), table[row, 1] - _F(oy)
             a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
             f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
-            live = 0.0
+            slot = _F(k + 1)
+            live = _0
             for p in range(P):  # branch-free: vectorised over the tile's pixels
                 dx, dy = gx[p] - u, gy[p] - v
-                alpha = o * _exp_neg(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
-                alpha = alpha if alpha >= ALPHA_MIN else 0.0  # two selects: a combined test stops vectorisation
-                alpha = alpha if T[p] >= T_STOP else 0.0
+                alpha = o * _exp_neg(-_HALF * (a * dx * dx + c * dy * dy) - b * dx * dy)
+                alpha = alpha if alpha >= _ALPHA_MIN else _0  # two selects: a combined test stops vectorisation
+                alpha = alpha if T[p] >= _T_STOP else _0
                 w = alpha * T[p]
                 acc0[p] += w * f0
                 acc1[p] += w * f1
                 acc2[p] += w * f2
                 acc3[p] += w * f3
-                used[p] = k + 1.0 if alpha > 0.0 else used[p]
-                T[p] *= 1.0 - alpha
+                used[p] = slot if alpha > _0 else used[p]
+                T[p] *= _1 - alpha
                 live += T[p]
-            if live < T_STOP:  # every pixel of the tile is done
+            if live < _T_STOP:  # every pixel of the tile is done
                 break
         for p in range(P):
             px, py = ox + p % ts, oy + p // ts
@@ -94,9 +101,9 @@ def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_used, g_feat, g_alpha, d_table):
     P = ts * ts
-    gx, gy = np.empty(P), np.empty(P)
-    T, S, used, h = np.empty(P), np.empty(P), np.empty(P), np.empty(P)  # T_{k+1}, sum_{j>k} w_j g.f_j
-    g0, g1, g2, g3 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)  # dL/dfeatures
+    gx, gy = np.empty(P, _F), np.empty(P, _F)
+    T, S, used, h = np.empty(P, _F), np.empty(P, _F), np.empty(P, _F), np.empty(P, _F)  # T_{k+1}, sum_{j>k} w g.f
+    g0, g1, g2, g3 = np.empty(P, _F), np.empty(P, _F), np.empty(P, _F), np.empty(P, _F)  # dL/dfeatures
     for p in range(P):
         gx[p], gy[p] = p % ts, p // ts
     for t in range(tiles.shape[0]):
@@ -105,27 +112,28 @@ def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_use
         for p in range(P):
             px, py = ox + p % ts, oy + p // ts
             inside = px < width and py < height
-            T[p] = t_end[py, px] if inside else 1.0
-            used[p] = n_used[py, px] if inside else 0.0
-            h[p] = g_alpha[py, px] * t_end[py, px] if inside else 0.0
-            S[p] = 0.0
-            g0[p] = g_feat[py, px, 0] if inside else 0.0
-            g1[p] = g_feat[py, px, 1] if inside else 0.0
-            g2[p] = g_feat[py, px, 2] if inside else 0.0
-            g3[p] = g_feat[py, px, 3] if inside else 0.0
+            T[p] = t_end[py, px] if inside else _1
+            used[p] = n_used[py, px] if inside else _0
+            h[p] = g_alpha[py, px] * t_end[py, px] if inside else _0
+            S[p] = _0
+            g0[p] = g_feat[py, px, 0] if inside else _0
+            g1[p] = g_feat[py, px, 1] if inside else _0
+            g2[p] = g_feat[py, px, 2] if inside else _0
+            g3[p] = g_feat[py, px, 3] if inside else _0
             last = max(last, int(used[p]))
         for k in range(last - 1, -1, -1):
             row = index[t, k]
-            u, v = table[row, 0] - ox, table[row, 1] - oy
+            u, v = table[row, 0] - _F(ox), table[row, 1] - _F(oy)
             a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
             f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
-            du = dv = da = db = dc = do = d0 = d1 = d2 = d3 = 0.0
+            slot = _F(k)
+            du = dv = da = db = dc = do = d0 = d1 = d2 = d3 = _0
             for p in range(P):
                 dx, dy = gx[p] - u, gy[p] - v
-                alpha = o * _exp_neg(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
-                alpha = alpha if alpha >= ALPHA_MIN else 0.0
-                alpha = alpha if k < used[p] else 0.0
-                inv = 1.0 / (1.0 - alpha)
+                alpha = o * _exp_neg(-_HALF * (a * dx * dx + c * dy * dy) - b * dx * dy)
+                alpha = alpha if alpha >= _ALPHA_MIN else _0
+                alpha = alpha if slot < used[p] else _0
+                inv = _1 / (_1 - alpha)
                 Tk = T[p] * inv
                 w = alpha * Tk
                 gf = g0[p] * f0 + g1[p] * f1 + g2[p] * f2 + g3[p] * f3
@@ -144,9 +152,9 @@ def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_use
                 do += d_power
             d_table[row, 0] += du
             d_table[row, 1] += dv
-            d_table[row, 2] -= 0.5 * da
+            d_table[row, 2] -= _HALF * da
             d_table[row, 3] -= db
-            d_table[row, 4] -= 0.5 * dc
+            d_table[row, 4] -= _HALF * dc
             d_table[row, 5] += do / o
             d_table[row, 6] += d0
             d_table[row, 7] += d1
@@ -218,30 +226,30 @@ class CompositeTiles(torch.autograd.Function):
     """``(features (H, W, F), alpha (H, W))`` of the table ``(N + 1, 6 + F)`` rows ``[u, v, a, b, c, o, f]``
     composited over the tiles of a :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``, ``index``,
     ``counts``); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
-    (RGB and depth, as the rasterizer composites)."""
+    (RGB and depth, as the rasterizer composites); computed in float32, returned in the table's dtype."""
 
     @staticmethod
     def forward(ctx, table, bins, n_tx, ts, width, height):
         if table.shape[1] != 10:
             raise ValueError(f"compiled compositing takes 4 features per Gaussian, got {table.shape[1] - 6}")
-        tab = table.detach().contiguous().numpy()
+        tab = table.detach().to(torch.float32).contiguous().numpy()
         index, counts, tiles = (v.contiguous().numpy() for v in (bins.index, bins.counts, bins.tiles))
-        out = np.zeros((height, width, tab.shape[1] - 6), tab.dtype)
-        t_end = np.ones((height, width), tab.dtype)
+        out = np.zeros((height, width, 4), np.float32)
+        t_end = np.ones((height, width), np.float32)
         n_used = np.zeros((height, width), np.int64)
         _forward(tab, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used)
         if ctx.needs_input_grad[0]:
             ctx.kernel_args = (tab, index, counts, tiles, n_tx, ts, width, height, t_end, n_used)
-        return torch.from_numpy(out), torch.from_numpy(1.0 - t_end)
+        ctx.dtype = table.dtype
+        return torch.from_numpy(out).to(table.dtype), torch.from_numpy(1.0 - t_end).to(table.dtype)
 
     @staticmethod
     def backward(ctx, g_feat, g_alpha):
-        tab = ctx.kernel_args[0]
         height, width = ctx.kernel_args[7], ctx.kernel_args[6]
-        g_feat = (np.zeros((height, width, tab.shape[1] - 6), tab.dtype) if g_feat is None
-                  else g_feat.detach().contiguous().numpy())
-        g_alpha = (np.zeros((height, width), tab.dtype) if g_alpha is None
-                   else g_alpha.detach().contiguous().numpy())
-        d_table = np.zeros_like(tab)
+        g_feat = (np.zeros((height, width, 4), np.float32) if g_feat is None
+                  else g_feat.detach().to(torch.float32).contiguous().numpy())
+        g_alpha = (np.zeros((height, width), np.float32) if g_alpha is None
+                   else g_alpha.detach().to(torch.float32).contiguous().numpy())
+        d_table = np.zeros_like(ctx.kernel_args[0])
         _backward(*ctx.kernel_args, g_feat, g_alpha, d_table)
-        return torch.from_numpy(d_table), None, None, None, None, None
+        return torch.from_numpy(d_table).to(ctx.dtype), None, None, None, None, None
