@@ -93,12 +93,12 @@ def test_vigs_run_params_out_of_range_name_file_key_and_range(tmp_path, capsys, 
 def test_vigs_run_params_accept_the_boundaries(tmp_path):
     path = frontend_yaml(tmp_path / "params.yaml", "    max_frames: null\n    odometry:\n      min_confidence: 1\n"
                          "      init_min_inliers: 0\n      ba: {iterations: 0}\n"
-                         "    loop: {detection: {max_orientation_deg: 180}}\n    mapping: {mapper: {render_scale: 1}}\n"
+                         "    loop: {detection: {max_orientation_deg: 180}}\n    mapping: {mapper: {render_scale: 0.5}}\n"
                          "    rerun: {jpeg_quality: 100}\n")
     cfg = load_config(path)
     assert cfg.max_frames is None
     assert (cfg.odometry.min_confidence, cfg.odometry.init_min_inliers, cfg.odometry.ba.iterations) == (1.0, 0.0, 0)
-    assert (cfg.loop.detection.max_orientation_deg, cfg.mapping.mapper.render_scale) == (180.0, 1.0)
+    assert (cfg.loop.detection.max_orientation_deg, cfg.mapping.mapper.render_scale) == (180.0, 0.5)
     assert cfg.rerun.jpeg_quality == 100
 
 

@@ -58,7 +58,6 @@ def test_graph_replays_simulated_bag(ros_context, sim_bag, tmp_path):
                                                                 P("height", value=sim_bag.camera.height),
                                                                 P("T_body_camera", value=T_BS)]),
         MapperNode(context=ros_context, parameter_overrides=[P("mapper.iterations", value=2),
-                                                              P("mapper.render_scale", value=1.0),
                                                               P("map_path", value=str(tmp_path / "map.ply")),
                                                               P("delta_period_s", value=0.2),
                                                               P("cloud_period_s", value=0.2)]),

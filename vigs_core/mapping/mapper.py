@@ -65,7 +65,8 @@ class MapperConfig:
         iterations: optimisation steps per new keyframe (N).
         window: size of the local window of most recent keyframes (including the new one).
         global_keyframes: random keyframes from outside the window added to each schedule.
-        render_scale: rendering/optimisation resolution relative to the camera (0.5: 752x480 -> 376x240).
+        render_scale: rendering/optimisation resolution relative to the keyframe images (1: the frontend's processing
+            resolution, 376x240 for EuRoC, at which both ``vigs run`` and the mapper node map and evaluate).
         init_stride: pixel stride (at render resolution) when unprojecting depth into Gaussians.
         init_scale: initial standard deviation in pixel spacings (see ``gaussians_from_depth``).
         lambda_color: weight of the L1 colour term.
@@ -102,7 +103,7 @@ class MapperConfig:
     iterations: int = bounded(10, 0)
     window: int = bounded(8, 1)
     global_keyframes: int = bounded(2, 0)
-    render_scale: float = bounded(0.5, 0, 1, lo_open=True)
+    render_scale: float = bounded(1.0, 0, 1, lo_open=True)
     init_stride: int = bounded(3, 1)
     init_scale: float = bounded(0.5, 0, lo_open=True)
     lambda_color: float = bounded(0.9, 0)

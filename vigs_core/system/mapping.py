@@ -45,11 +45,10 @@ class MappingConfig:
     """Settings of the mapping inside ``vigs run``.
 
     Args:
-        enabled: run the Gaussian mapper. It costs CPU: with the pure-PyTorch rasterizer about 1-2 s per
-            keyframe at the default 10 iterations and 188x120 render size, plus about 0.5 s per evaluated frame
-            at the end (2-core machine under load: the 441-frame sample went from 15 to 4.4 frames/s of tracking
-            and from 37 s to 161 s in all). The mapper is a worker thread, so tracking never waits for it but
-            shares the CPU with it; the run waits for the mapper's backlog at the end.
+        enabled: run the Gaussian mapper (its CPU cost per keyframe and per evaluated frame: docs/benchmarks.md,
+            issue 23). The mapper is a worker thread, so tracking never waits for it but shares the CPU with it
+            (the compiled rasterizer kernels release the interpreter lock); the run waits for the mapper's backlog
+            at the end.
         mapper: the mapper's settings (:class:`vigs_core.mapping.MapperConfig`).
         keyframe_delay: a keyframe is mapped once this many newer keyframes exist (its depth refined by BA);
             below the frontend's window (its image is dropped when it leaves the window).
