@@ -40,11 +40,12 @@ STAGES = {"flow": "flow", "ba": "ba", "track": "tracking", "vio": "vio_init"}
 RUN = "import sys; from vigs_cli.main import main; sys.argv[0] = 'vigs'; sys.exit(main())"
 
 
-def params_file(folder: Path, name: str, extra: Path | None) -> Path:
-    """A ``--params`` file for ``vigs run``: ``extra``'s frontend parameters (ROS layout) with mapping off."""
+def params_file(folder: Path, name: str, extra: Path | None, mapping: dict) -> Path:
+    """A ``--params`` file for ``vigs run``: ``extra``'s frontend parameters (ROS layout) with the ``mapping``
+    settings set over them (``{"enabled": False}`` for this benchmark)."""
     doc = (yaml.safe_load(extra.read_text()) if extra else None) or {}
     front = doc.setdefault("frontend", {}).setdefault("ros__parameters", {})
-    front.setdefault("mapping", {})["enabled"] = False
+    front.setdefault("mapping", {}).update(mapping)
     path = folder / f"{name}.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path
@@ -88,19 +89,21 @@ def print_table(rows: list[dict]) -> None:
         print("  ".join(str(r[c]).rjust(width[c]) for c in cols), flush=True)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="vigs bench tracking", description=__doc__.split("\n\n")[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments every side-by-side ``vigs run`` benchmark takes (this one and ``vigs bench mapping``)."""
     p.add_argument("--sequences", nargs="+", default=list(SEQUENCES))
     p.add_argument("--bags", default=str(ROOT / "out" / "sim"), help="folder of the <SEQ>_bag hybrid bags")
     p.add_argument("--base", help="git commit or tag to compare with (checked out in a temporary worktree)")
     p.add_argument("--variant", action="append", default=[], metavar="NAME=FILE",
                    help="this checkout with these extra parameters (vigs run --params layout)")
-    p.add_argument("--rrd", action="store_true",
-                   help="also this checkout recording to a rerun file (vigs run --rrd): what logging costs")
     p.add_argument("--repeat", type=int, default=1, help="rounds over the versions per sequence")
     p.add_argument("--keep", help="keep the run folders here")
     p.add_argument("--json", help="write the rows here")
-    args = p.parse_args(argv)
+
+
+def compare(p: argparse.ArgumentParser, args: argparse.Namespace, mapping: dict, make_row, rrd: bool = False) -> int:
+    """Run every version on every sequence (alternating per sequence), print the rows of ``make_row(sequence,
+    label, report)`` as a table; ``mapping`` goes into every version's parameters (:func:`params_file`)."""
     variants = [v.split("=", 1) for v in args.variant]
     if any(len(v) != 2 or not Path(v[1]).is_file() for v in variants):
         p.error("--variant takes NAME=FILE with an existing parameter file")
@@ -109,11 +112,11 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         p.error(f"no hybrid bag {missing}; render with: vigs sim --euroc ../shared/data/euroc/SEQ --width 376 "
                 "--no-depth --bag out/sim/SEQ_bag")
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="vigs_bench_tracking_"))
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="vigs_bench_"))
     work.mkdir(parents=True, exist_ok=True)
-    versions = [("head", ROOT, params_file(work, "head", None), False)]
-    versions += [(name, ROOT, params_file(work, name, Path(file)), False) for name, file in variants]
-    if args.rrd:
+    versions = [("head", ROOT, params_file(work, "head", None, mapping), False)]
+    versions += [(name, ROOT, params_file(work, name, Path(file), mapping), False) for name, file in variants]
+    if rrd:
         versions.append(("head+rrd", ROOT, versions[0][2], True))
     worktree = None
     try:
@@ -121,16 +124,16 @@ def main(argv: list[str] | None = None) -> int:
             worktree = work / "base_checkout"
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(worktree), args.base],
                            check=True, capture_output=True)
-            versions.insert(0, (f"base {args.base}", worktree, params_file(work, "base", None), False))
+            versions.insert(0, (f"base {args.base}", worktree, params_file(work, "base", None, mapping), False))
         print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
         rows = []
         for seq, bag in bags.items():
             for rnd in range(args.repeat):
-                for label, code, params, rrd in versions:
+                for label, code, params, with_rrd in versions:
                     out = work / f"{seq}_{label.split()[0]}_{rnd}"
                     shutil.rmtree(out, ignore_errors=True)
                     out.mkdir(parents=True)
-                    rows.append(row(seq, label, run_once(code, bag, params, out, rrd)))
+                    rows.append(make_row(seq, label, run_once(code, bag, params, out, with_rrd)))
                     print(json.dumps(rows[-1]), flush=True)
         print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         print_table(rows)
@@ -143,6 +146,15 @@ def main(argv: list[str] | None = None) -> int:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="vigs bench tracking", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    p.add_argument("--rrd", action="store_true",
+                   help="also this checkout recording to a rerun file (vigs run --rrd): what logging costs")
+    args = p.parse_args(argv)
+    return compare(p, args, {"enabled": False}, row, rrd=args.rrd)
 
 
 if __name__ == "__main__":

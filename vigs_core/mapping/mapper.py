@@ -82,7 +82,8 @@ class MapperConfig:
         prune_min_opacity: Gaussians less opaque than this are removed.
         prune_max_angular: Gaussians larger than this (std / distance to the anchor keyframe, rad) are removed.
         backend: rasterizer backend (:func:`~vigs_core.mapping.rasterizer.make_rasterizer`): "auto" (gsplat on CUDA,
-            else the compiled CPU compositing), "torch" (the reference), "numba" or "gsplat".
+            else the compiled CPU kernels), "torch" (the pure-PyTorch reference), "numba" or "gsplat". The numba
+            backend also takes Adam's compiled step (:class:`~vigs_core.mapping.optimizer.RowAdam` ``compiled``).
         tile_size: tile edge of the reference rasterizer, pixels.
         max_per_tile: Gaussians composited per tile at most (reference rasterizer).
         seed: seed of the keyframe sampler.
@@ -254,7 +255,8 @@ class GaussianMapper:
                 "quats": c.lr_quats,
                 "opacity_logits": c.lr_opacity,
                 "colors": c.lr_colors,
-            }
+            },
+            compiled=getattr(self.rasterizer, "compiled", False),  # the numba backend's Adam too; "torch": none
         )
         self.map = GaussianMap.empty(device=self.device)
         self.keyframes: dict[int, Keyframe] = {}

@@ -18,10 +18,14 @@ class RowAdam:
         lrs: learning rate per parameter name.
         betas: Adam's ``(b1, b2)``.
         eps: Adam's epsilon.
+        compiled: on CPU, update the rows in one compiled kernel (:mod:`vigs_core.mapping.adam_numba`; needs
+            numba) instead of gathering and scattering them with tensor operations.
     """
 
-    def __init__(self, lrs: dict[str, float], betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15):
+    def __init__(self, lrs: dict[str, float], betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15,
+                 compiled: bool = False):
         self.lrs = dict(lrs)
+        self.compiled = compiled
         self.betas = betas
         self.eps = eps
         self.m: dict[str, torch.Tensor] = {}
@@ -77,6 +81,16 @@ class RowAdam:
                 raise ValueError(f"gradient of {k!r} has shape {tuple(g.shape)}, need {want}")
         b1, b2 = self.betas
         self.t[touched] += 1
+        if self._compiled(params, grads):
+            from vigs_core.mapping.adam_numba import adam_rows
+
+            rows, t = touched.numpy(), self.t.numpy()
+            for k, g in grads.items():
+                n = params[k].shape[0]
+                adam_rows(params[k].numpy().reshape(n, -1), self.m[k].numpy().reshape(n, -1),
+                          self.v[k].numpy().reshape(n, -1), t, rows, g.contiguous().numpy().reshape(len(rows), -1),
+                          self.lrs[k], b1, b2, self.eps)
+            return
         t = self.t[touched].to(next(iter(params.values())).dtype)
         c1 = 1.0 - b1**t
         c2 = 1.0 - b2**t
@@ -89,3 +103,10 @@ class RowAdam:
             shape = (-1,) + (1,) * (p.dim() - 1)
             update = (m / c1.view(shape)) / ((v / c2.view(shape)).sqrt_().add_(self.eps))
             p[touched] -= self.lrs[k] * update
+
+    def _compiled(self, params: dict[str, torch.Tensor], grads: dict[str, torch.Tensor]) -> bool:
+        """Whether :meth:`step` takes the compiled path (:mod:`vigs_core.mapping.adam_numba`): ``compiled`` set and
+        every tensor a contiguous CPU tensor without gradient (numpy views of them are updated in place)."""
+        tensors = [params[k] for k in grads] + [self.m[k] for k in grads] + [self.v[k] for k in grads]
+        return self.compiled and all(x.device.type == "cpu" and x.is_contiguous() and not x.requires_grad
+                                     for x in tensors)
