@@ -257,3 +257,33 @@ def test_compiled_binning_matches_the_reference():
             assert torch.equal(a, b)
     assert 0 < int(ref.binned.sum()) < ref.binned.numel()
     assert int(ref.counts.max()) > 5, "the first pass must cut overfull tiles"
+
+
+def test_compiled_projection_matches_the_reference_and_finite_differences():
+    from vigs_core.mapping.rasterizer_numba import ProjectGaussians
+
+    dtype = torch.float64
+    cam = RenderCamera(37, 29, 30.0, 30.0, 18.2, 13.9)
+    means, quats, scales, _, _ = _random_scene(200, dtype, seed=3)
+    means = means * torch.tensor([6.0, 6.0, 1.0], dtype=dtype)  # rays beyond the clamp too
+    T_CW = _camera_pose(dtype)
+    inputs = tuple(t.clone().requires_grad_() for t in (means, quats, scales))
+
+    def reference(m, q, s):
+        mean2d, cov2d, z = project_gaussians(m, q / q.norm(dim=-1, keepdim=True), s, T_CW, cam, 0.3)
+        det = cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2
+        return mean2d, torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None], z, cov2d
+
+    ref, got = reference(*inputs), ProjectGaussians.apply(*inputs, T_CW, cam, 0.3)
+    for a, b in zip(got, ref):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+    tx = (ref[0][:, 0].detach() - cam.cx) / cam.fx
+    assert bool((rasterizer_module._clamped_rays(tx, tx, cam)[0] != tx).any()), "some rays must be clamped"
+    weights = [torch.randn_like(t) for t in ref[:3]]
+    g_ref = torch.autograd.grad(sum((t * w).sum() for t, w in zip(ref[:3], weights)), inputs)
+    g_got = torch.autograd.grad(sum((t * w).sum() for t, w in zip(got[:3], weights)), inputs)
+    for a, b in zip(g_got, g_ref):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-10)
+    small = tuple(t[:12].detach().clone().requires_grad_() for t in inputs)
+    assert torch.autograd.gradcheck(lambda m, q, s: ProjectGaussians.apply(m, q, s, T_CW, cam, 0.3)[:3], small,
+                                    eps=1e-6, atol=1e-6, rtol=1e-5)

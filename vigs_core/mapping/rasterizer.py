@@ -492,8 +492,8 @@ def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
 
 class TorchRasterizer:
     """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (CPU
-    only) binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba` instead of
-    the torch reference: the same projection, tiles and model, with 3DGS's early stop per pixel."""
+    only) projection, binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba`
+    instead of the torch reference: the same model and tiles, with 3DGS's early stop per pixel."""
 
     def __init__(self, settings: RenderSettings | None = None, compiled: bool = False) -> None:
         self.settings = settings or RenderSettings()
@@ -519,12 +519,14 @@ class TorchRasterizer:
         P = ts * ts
 
         front = frustum_rows(means, scales, T_CW, camera, s)
-        mean2d, cov2d, z = project_gaussians(
-            means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front),
-            T_CW, camera, s.eps2d,
-        )  # fmt: skip
+        rows = (means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front))
+        if self.compiled:  # the projection fused with the conic, in one compiled loop each way
+            mean2d, conic, z, cov2d = rasterizer_numba.ProjectGaussians.apply(*rows, T_CW, camera, s.eps2d)
+        else:
+            mean2d, cov2d, z = project_gaussians(*rows, T_CW, camera, s.eps2d)
+            det = (cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2).clamp_min(1e-12)
+            conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
         opac = opacities.index_select(0, front).clamp(max=ALPHA_MAX)
-        det = (cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2).clamp_min(1e-12)
         with torch.no_grad():
             reach = 2.0 * torch.log((255.0 * opac.detach()).clamp_min(1.0))  # d^2 where alpha hits 1/255
             half = torch.sqrt(reach[:, None] * cov2d[:, [0, 2]].detach())
@@ -536,7 +538,6 @@ class TorchRasterizer:
                 & (mean2d[:, 1] - half[:, 1] <= camera.height - 0.5)
             )
             sel = inside.nonzero().squeeze(1)
-        conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
         with torch.no_grad():
             if self.compiled:
                 bins = rasterizer_numba.bin_gaussians(

@@ -24,6 +24,8 @@ kernel runs (``nogil``), so a tracking thread beside the mapper keeps running.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from numba import njit
@@ -220,6 +222,171 @@ def bin_gaussians(mean2d, half_extent, depth, conic, reach, n_tx: int, n_ty: int
     tiles = tiles[np.argsort(-counts[tiles], kind="stable")]
     return TileBins(torch.from_numpy(tiles), torch.from_numpy(index[tiles]), torch.from_numpy(counts[tiles]),
                     torch.from_numpy(binned))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rays(x, y, z, lim):
+    """``x/z``, ``y/z`` clamped as :func:`~vigs_core.mapping.rasterizer._clamped_rays` (bounds ``lim`` (4,)) and
+    whether each lies inside its bounds (its derivative passes)."""
+    tx, ty = x / z, y / z
+    in_x, in_y = lim[0] <= tx <= lim[1], lim[2] <= ty <= lim[3]
+    return min(max(tx, lim[0]), lim[1]), min(max(ty, lim[2]), lim[3]), in_x, in_y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _camera_point(R, t, mu):
+    """``R mu + t``: the camera-frame point."""
+    return (R[0, 0] * mu[0] + R[0, 1] * mu[1] + R[0, 2] * mu[2] + t[0],
+            R[1, 0] * mu[0] + R[1, 1] * mu[1] + R[1, 2] * mu[2] + t[1],
+            R[2, 0] * mu[0] + R[2, 1] * mu[1] + R[2, 2] * mu[2] + t[2])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _quat_matrix(q, Q):
+    """:func:`~vigs_core.geometry.quat_to_matrix` of one quaternion ``(w, x, y, z)`` (normalised here too) into
+    ``Q`` (3, 3)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    Q[0, 0], Q[0, 1], Q[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    Q[1, 0], Q[1, 1], Q[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    Q[2, 0], Q[2, 1], Q[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _footprint_rows(R, Q, s, fx, fy, iz, tx, ty, RQ, m0, m1):
+    """``RQ = R Q`` and the rows ``m0``, ``m1`` of ``M = J R Q diag(s)`` (``Sigma' = M M^T``), into the arrays."""
+    for r in range(3):
+        for c in range(3):
+            RQ[r, c] = R[r, 0] * Q[0, c] + R[r, 1] * Q[1, c] + R[r, 2] * Q[2, c]
+    for c in range(3):
+        m0[c] = fx * iz * (RQ[0, c] - tx * RQ[2, c]) * s[c]
+        m1[c] = fy * iz * (RQ[1, c] - ty * RQ[2, c]) * s[c]
+
+
+@njit(cache=True, nogil=True)
+def _project(means, quats, scales, R, t, intr, lim, eps2d, mean2d, conic, depth, cov2d):
+    """Forward of :class:`ProjectGaussians` (float64 arithmetic), into the output arrays."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    Q, RQ, m0, m1 = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
+    for i in range(means.shape[0]):
+        x, y, z = _camera_point(R, t, means[i])
+        iz = 1.0 / z
+        mean2d[i, 0], mean2d[i, 1], depth[i] = fx * x * iz + cx, fy * y * iz + cy, z
+        tx, ty, _, _ = _rays(x, y, z, lim)
+        _quat_matrix(quats[i], Q)
+        _footprint_rows(R, Q, scales[i], fx, fy, iz, tx, ty, RQ, m0, m1)
+        c00 = m0[0] * m0[0] + m0[1] * m0[1] + m0[2] * m0[2] + eps2d
+        c01 = m0[0] * m1[0] + m0[1] * m1[1] + m0[2] * m1[2]
+        c11 = m1[0] * m1[0] + m1[1] * m1[1] + m1[2] * m1[2] + eps2d
+        det = max(c00 * c11 - c01 * c01, 1e-12)
+        conic[i, 0], conic[i, 1], conic[i, 2] = c11 / det, -c01 / det, c00 / det
+        cov2d[i, 0], cov2d[i, 1], cov2d[i, 2] = c00, c01, c11
+
+
+@njit(cache=True, nogil=True)
+def _project_backward(means, quats, scales, R, t, intr, lim, cov2d, g_mean2d, g_conic, g_depth,
+                      d_means, d_quats, d_scales):
+    """Backward of :class:`ProjectGaussians`: the chain rule of :func:`_project` in reverse (float64)."""
+    fx, fy = intr[0], intr[1]
+    Q, RQ, m0, m1 = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
+    dW, dQ, dm0, dm1 = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
+    for i in range(means.shape[0]):
+        x, y, z = _camera_point(R, t, means[i])
+        iz = 1.0 / z
+        tx, ty, in_x, in_y = _rays(x, y, z, lim)
+        _quat_matrix(quats[i], Q)
+        s = scales[i]
+        _footprint_rows(R, Q, s, fx, fy, iz, tx, ty, RQ, m0, m1)
+        c00, c01, c11 = cov2d[i, 0], cov2d[i, 1], cov2d[i, 2]
+        D = max(c00 * c11 - c01 * c01, 1e-12)
+        D2 = D * D
+        ga, gb, gc = g_conic[i, 0], g_conic[i, 1], g_conic[i, 2]
+        # conic = (c11, -c01, c00) / D  ->  gradients of the covariance entries
+        g00 = -ga * c11 * c11 / D2 + gb * c01 * c11 / D2 + gc * (1.0 / D - c00 * c11 / D2)
+        g11 = ga * (1.0 / D - c11 * c00 / D2) + gb * c01 * c00 / D2 - gc * c00 * c00 / D2
+        g01 = 2.0 * ga * c01 * c11 / D2 + gb * (-1.0 / D - 2.0 * c01 * c01 / D2) + 2.0 * gc * c01 * c00 / D2
+        for c in range(3):
+            dm0[c] = 2.0 * g00 * m0[c] + g01 * m1[c]
+            dm1[c] = 2.0 * g11 * m1[c] + g01 * m0[c]
+        # M = J W with W = R Q diag(s): dJ = dM W^T (entries J00, J02, J11, J12), dW = J^T dM
+        dJ00 = dJ02 = dJ11 = dJ12 = 0.0
+        for c in range(3):
+            dJ00 += dm0[c] * RQ[0, c] * s[c]
+            dJ02 += dm0[c] * RQ[2, c] * s[c]
+            dJ11 += dm1[c] * RQ[1, c] * s[c]
+            dJ12 += dm1[c] * RQ[2, c] * s[c]
+            dW[0, c] = fx * iz * dm0[c]
+            dW[1, c] = fy * iz * dm1[c]
+            dW[2, c] = -fx * tx * iz * dm0[c] - fy * ty * iz * dm1[c]
+        for c in range(3):
+            d_scales[i, c] = dW[0, c] * RQ[0, c] + dW[1, c] * RQ[1, c] + dW[2, c] * RQ[2, c]
+            for r in range(3):
+                dQ[r, c] = (R[0, r] * dW[0, c] + R[1, r] * dW[1, c] + R[2, r] * dW[2, c]) * s[c]
+        _quat_matrix_backward(quats[i], dQ, d_quats[i])
+        # the camera-frame point: mean2d, depth and J (through 1/z and the clamped rays)
+        dtx_dx, dtx_dz = (iz, -x * iz * iz) if in_x else (0.0, 0.0)
+        dty_dy, dty_dz = (iz, -y * iz * iz) if in_y else (0.0, 0.0)
+        dp0 = g_mean2d[i, 0] * fx * iz - dJ02 * fx * iz * dtx_dx
+        dp1 = g_mean2d[i, 1] * fy * iz - dJ12 * fy * iz * dty_dy
+        dp2 = (-g_mean2d[i, 0] * fx * x * iz * iz - g_mean2d[i, 1] * fy * y * iz * iz + g_depth[i]
+               - dJ00 * fx * iz * iz - dJ11 * fy * iz * iz
+               - dJ02 * fx * (dtx_dz * iz - tx * iz * iz) - dJ12 * fy * (dty_dz * iz - ty * iz * iz))
+        for c in range(3):
+            d_means[i, c] = R[0, c] * dp0 + R[1, c] * dp1 + R[2, c] * dp2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _quat_matrix_backward(q, G, out):
+    """Gradient ``out`` (4,) of ``sum(G * quat_to_matrix(q))`` with respect to ``q`` (through the normalisation)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / n, q[1] / n, q[2] / n, q[3] / n
+    dw = 2.0 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+    dx = 2.0 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
+                + w * G[2, 1] - 2 * x * G[2, 2])
+    dy = 2.0 * (-2 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
+                + z * G[2, 1] - 2 * y * G[2, 2])
+    dz = 2.0 * (-2 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2 * z * G[1, 1] + y * G[1, 2]
+                + x * G[2, 0] + y * G[2, 1])
+    dot = w * dw + x * dx + y * dy + z * dz  # d(q / |q|) / dq = (I - u u^T) / |q|
+    out[0], out[1], out[2], out[3] = (dw - w * dot) / n, (dx - x * dot) / n, (dy - y * dot) / n, (dz - z * dot) / n
+
+
+class ProjectGaussians(torch.autograd.Function):
+    """:func:`~vigs_core.mapping.rasterizer.project_gaussians` fused with the conic: ``(mean2d (N, 2), conic (N, 3)
+    (a, b, c) of ``cov2d^-1``, depth (N,), cov2d (N, 3) without gradient)`` of ``means``, ``quats`` (normalised
+    here), ``scales`` (N, 3) seen by ``T_CW`` (4, 4) through ``camera`` (a ``RenderCamera``), ``eps2d`` px^2 added.
+    One compiled loop per Gaussian forward and backward (float64 arithmetic) in place of about a hundred tensor
+    operations; the backward is the chain rule of EWA splatting (3DGS Eq. 5) through the clamped rays."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, T_CW, camera, eps2d):
+        f64 = [x.detach().to(torch.float64).contiguous().numpy() for x in (means, quats, scales)]
+        T = T_CW.detach().to(torch.float64).numpy()
+        R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+        intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+        lx, ly = 1.3 * (0.5 * camera.width / camera.fx), 1.3 * (0.5 * camera.height / camera.fy)
+        lim = np.array([-lx - camera.cx / camera.fx, lx + (camera.width - camera.cx) / camera.fx,
+                        -ly - camera.cy / camera.fy, ly + (camera.height - camera.cy) / camera.fy])
+        n = means.shape[0]
+        mean2d, conic, depth, cov2d = np.empty((n, 2)), np.empty((n, 3)), np.empty(n), np.empty((n, 3))
+        _project(*f64, R, t, intr, lim, float(eps2d), mean2d, conic, depth, cov2d)
+        ctx.kernel_args = (*f64, R, t, intr, lim, cov2d)
+        ctx.dtype = means.dtype
+        out = [torch.from_numpy(a).to(means.dtype) for a in (mean2d, conic, depth, cov2d)]
+        ctx.mark_non_differentiable(out[3])
+        return tuple(out)
+
+    @staticmethod
+    def backward(ctx, g_mean2d, g_conic, g_depth, _g_cov2d):
+        means = ctx.kernel_args[0]
+        n = means.shape[0]
+        grads = [np.zeros((n, 2)) if g_mean2d is None else g_mean2d.to(torch.float64).contiguous().numpy(),
+                 np.zeros((n, 3)) if g_conic is None else g_conic.to(torch.float64).contiguous().numpy(),
+                 np.zeros(n) if g_depth is None else g_depth.to(torch.float64).contiguous().numpy()]
+        d_means, d_quats, d_scales = np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3))
+        _project_backward(*ctx.kernel_args, *grads, d_means, d_quats, d_scales)
+        out = [torch.from_numpy(a).to(ctx.dtype) for a in (d_means, d_quats, d_scales)]
+        return (*out, None, None, None)
 
 
 class CompositeTiles(torch.autograd.Function):
