@@ -60,8 +60,9 @@ class MappingConfig:
         eval_max_frames: at most this many of those are kept (a uniform random sample of them, reservoir
             sampling with a fixed seed), so a long run's evaluation images and time stay bounded (every 5th
             frame of an hour at 20 Hz would be 650 MB of images and an hour of rendering at the end).
-        final_refine_iterations: colour-refinement steps after the run (0: none); metrics are reported
-            before and after.
+        final_refine_iterations: colour-refinement steps after the run (0: none; a run cut short skips them), on
+            keyframes drawn uniformly from all; metrics are reported before and after. On by default: ``vigs run``
+            is an offline run, and the pass costs one optimisation step each (docs/benchmarks.md, issue 23).
     """
 
     enabled: bool = True
@@ -72,7 +73,7 @@ class MappingConfig:
     pose_tolerance: float = bounded(1e-4, 0)
     eval_stride: int = bounded(5, 0)
     eval_max_frames: int = bounded(100, 0)
-    final_refine_iterations: int = bounded(0, 0)
+    final_refine_iterations: int = bounded(100, 0)
 
     def __post_init__(self) -> None:
         if self.keyframe_delay < 0 or self.eval_stride < 0 or self.final_refine_iterations < 0 or \
