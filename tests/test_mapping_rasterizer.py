@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from vigs_core.geometry import se3_from_rt, se3_inverse, so3_exp
@@ -82,14 +83,16 @@ def test_single_gaussian_peaks_at_its_projection_with_its_depth():
     assert out.visible.tolist() == [0]
 
 
-def test_front_gaussian_occludes_back_gaussian():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_front_gaussian_occludes_back_gaussian(compiled):
     dtype = torch.float32
     cam = RenderCamera(24, 24, 30.0, 30.0, 12.0, 12.0)
     means = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.0, 1.5]])  # back first: order must come from depth
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)
     scales = torch.tensor([[0.3, 0.3, 0.3], [0.3, 0.3, 0.3]])
     colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    out = TorchRasterizer()(means, quats, scales, torch.tensor([0.99, 0.99]), colors, torch.eye(4, dtype=dtype), cam)
+    out = TorchRasterizer(compiled=compiled)(means, quats, scales, torch.tensor([0.99, 0.99]), colors,
+                                             torch.eye(4, dtype=dtype), cam)
     # at the centre pixel both Gaussians have alpha 0.99; the front one (blue, z = 1.5) comes first
     w_front, w_back = 0.99, 0.01 * 0.99
     assert torch.allclose(out.color[12, 12], torch.tensor([w_back, 0.0, w_front]), atol=1e-6)
@@ -111,11 +114,12 @@ def test_tiling_and_chunking_do_not_change_the_image():
     assert float(ref.alpha.mean()) > 0.3
 
 
-def test_gaussians_behind_or_outside_the_camera_are_not_drawn():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_gaussians_behind_or_outside_the_camera_are_not_drawn(compiled):
     cam = RenderCamera(20, 20, 20.0, 20.0, 9.5, 9.5)
     means = torch.tensor([[0.0, 0.0, -2.0], [50.0, 0.0, 2.0]])
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2)
-    out = TorchRasterizer()(
+    out = TorchRasterizer(compiled=compiled)(
         means, quats, torch.full((2, 3), 0.1), torch.tensor([0.9, 0.9]), torch.ones(2, 3), torch.eye(4), cam
     )
     assert float(out.alpha.abs().max()) == 0.0
