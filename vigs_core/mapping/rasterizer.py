@@ -491,8 +491,8 @@ def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
 
 
 class TorchRasterizer:
-    """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (CPU
-    only) projection, binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba`
+    """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (used
+    for CPU tensors) projection, binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba`
     instead of the torch reference: the same model and tiles, with 3DGS's early stop per pixel."""
 
     def __init__(self, settings: RenderSettings | None = None, compiled: bool = False) -> None:
@@ -509,7 +509,8 @@ class TorchRasterizer:
         T_CW: torch.Tensor,
         camera: RenderCamera,
     ) -> RenderOutput:
-        if self.compiled:
+        compiled = self.compiled and means.device.type == "cpu"  # the kernels take CPU arrays; elsewhere torch
+        if compiled:
             from vigs_core.mapping import rasterizer_numba
         s = self.settings
         dtype, device = means.dtype, means.device
@@ -520,7 +521,7 @@ class TorchRasterizer:
 
         front = frustum_rows(means, scales, T_CW, camera, s)
         rows = (means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front))
-        if self.compiled:  # the projection fused with the conic, in one compiled loop each way
+        if compiled:  # the projection fused with the conic, in one compiled loop each way
             mean2d, conic, z, cov2d = rasterizer_numba.ProjectGaussians.apply(*rows, T_CW, camera, s.eps2d)
         else:
             mean2d, cov2d, z = project_gaussians(*rows, T_CW, camera, s.eps2d)
@@ -539,7 +540,7 @@ class TorchRasterizer:
             )
             sel = inside.nonzero().squeeze(1)
         with torch.no_grad():
-            if self.compiled:
+            if compiled:
                 bins = rasterizer_numba.bin_gaussians(
                     mean2d[sel], half[sel], z[sel], conic[sel], reach[sel], n_tx, n_ty, ts, camera.width,
                     camera.height, s.max_per_tile,
@@ -552,7 +553,7 @@ class TorchRasterizer:
         table = torch.cat((mean2d, conic, opac[:, None], colors.index_select(0, front), z[:, None]), -1)
         table = _append_zero_row(table.index_select(0, sel))
 
-        if self.compiled:
+        if compiled:
             feats, alpha = rasterizer_numba.CompositeTiles.apply(table, bins, n_tx, ts, camera.width, camera.height)
         else:
             origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
@@ -563,16 +564,16 @@ class TorchRasterizer:
 
 
 def numba_available() -> bool:
-    """Whether the compiled CPU compositing (:mod:`vigs_core.mapping.rasterizer_numba`) can be used."""
+    """Whether the compiled CPU kernels (:mod:`vigs_core.mapping.rasterizer_numba`) can be used."""
     import importlib.util
 
     return importlib.util.find_spec("numba") is not None
 
 
 def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = None) -> Rasterizer:
-    """The rasterizer named ``backend``: ``"torch"`` (reference), ``"numba"`` (the reference with compiled CPU
-    compositing), ``"gsplat"`` (CUDA only) or ``"auto"`` (gsplat when CUDA and the gsplat package are available,
-    else numba when installed, else the reference)."""
+    """The rasterizer named ``backend``: ``"torch"`` (reference), ``"numba"`` (the reference's model with compiled
+    CPU kernels; tensors on another device take the reference's path), ``"gsplat"`` (CUDA only) or ``"auto"``
+    (gsplat when CUDA and the gsplat package are available, else numba when installed, else the reference)."""
     if backend not in ("auto", "torch", "numba", "gsplat"):
         raise ValueError(f"rasterizer backend must be 'auto', 'torch', 'numba' or 'gsplat', got {backend!r}")
     if backend in ("auto", "gsplat"):

@@ -1,5 +1,9 @@
-"""Compiled CPU binning and tile compositing (numba) of :class:`~vigs_core.mapping.rasterizer.TorchRasterizer`,
-the compositing with 3DGS's early stop (Kerbl et al. 2023, Sec. 6).
+"""Compiled CPU projection, binning and tile compositing (numba) of :class:`~vigs_core.mapping.rasterizer.
+TorchRasterizer`, the compositing with 3DGS's early stop (Kerbl et al. 2023, Sec. 6).
+
+Projection (:class:`ProjectGaussians`): :func:`~vigs_core.mapping.rasterizer.project_gaussians` and the conic in one
+loop over the Gaussians, its backward the chain rule written out (float64 arithmetic: a few dozen operations per
+Gaussian, where the tensor version paid the per-call overhead of about a hundred operations and their autograd).
 
 Binning (:func:`bin_gaussians`) gives the reference's :class:`~vigs_core.mapping.rasterizer.TileBins` without its
 sort of (tile, depth) pairs: the Gaussians are visited in depth order, so each tile's list fills front to back; a
