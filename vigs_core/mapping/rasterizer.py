@@ -126,14 +126,19 @@ class Rasterizer(Protocol):
     ) -> RenderOutput: ...
 
 
-def _clamped_rays(tx: torch.Tensor, ty: torch.Tensor, camera: RenderCamera) -> tuple[torch.Tensor, torch.Tensor]:
-    """``x/z``, ``y/z`` clamped to 1.3x the field of view, as they enter the projection Jacobian (3DGS)."""
+def ray_limits(camera: RenderCamera) -> tuple[float, float, float, float]:
+    """``(lo_x, hi_x, lo_y, hi_y)``: the bounds of ``x/z``, ``y/z`` in the projection Jacobian, 1.3x the field of
+    view (3DGS)."""
     lim_x = 1.3 * (0.5 * camera.width / camera.fx)
     lim_y = 1.3 * (0.5 * camera.height / camera.fy)
-    return (
-        tx.clamp(-lim_x - camera.cx / camera.fx, lim_x + (camera.width - camera.cx) / camera.fx),
-        ty.clamp(-lim_y - camera.cy / camera.fy, lim_y + (camera.height - camera.cy) / camera.fy),
-    )
+    return (-lim_x - camera.cx / camera.fx, lim_x + (camera.width - camera.cx) / camera.fx,
+            -lim_y - camera.cy / camera.fy, lim_y + (camera.height - camera.cy) / camera.fy)
+
+
+def _clamped_rays(tx: torch.Tensor, ty: torch.Tensor, camera: RenderCamera) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x/z``, ``y/z`` clamped to :func:`ray_limits`, as they enter the projection Jacobian (3DGS)."""
+    lo_x, hi_x, lo_y, hi_y = ray_limits(camera)
+    return tx.clamp(lo_x, hi_x), ty.clamp(lo_y, hi_y)
 
 
 def project_gaussians(
@@ -583,6 +588,7 @@ def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = Non
             return GsplatRasterizer(settings)
         if backend == "gsplat":
             raise RuntimeError("rasterizer backend 'gsplat' needs CUDA and the gsplat package; neither is usable here")
-    if backend == "numba" and not numba_available():
+    compiled = backend in ("auto", "numba") and numba_available()
+    if backend == "numba" and not compiled:
         raise RuntimeError("rasterizer backend 'numba' needs the numba package (requirements/runtime.txt)")
-    return TorchRasterizer(settings, compiled=backend == "numba" or (backend == "auto" and numba_available()))
+    return TorchRasterizer(settings, compiled=compiled)

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from vigs_core.mapping.rasterizer import ALPHA_MIN, TileBins
+from vigs_core.mapping.rasterizer import ALPHA_MIN, TileBins, ray_limits
 
 T_STOP = 1e-4
 EXP_FLOOR = 20.0
@@ -183,12 +183,12 @@ def _meets(mx, my, a, b, c, r, x0, y0, x1, y1):
 
 
 @njit(cache=True, nogil=True)
-def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_per_tile, fill):
-    """Pass ``fill = False``: per tile the number of Gaussians that meet it; ``fill = True``: also their rows,
-    front to back, at most ``max_per_tile``. Returns ``(counts (n_tx n_ty,), index (n_tx n_ty, K), binned (N,))``."""
+def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_per_tile):
+    """Per tile the rows of the Gaussians that meet it, front to back (``order``), the first ``max_per_tile``:
+    ``(counts (n_tx n_ty,), index (n_tx n_ty, max_per_tile) padded with N, binned (N,))``."""
     n = mean2d.shape[0]
     counts = np.zeros(n_tx * n_ty, np.int64)
-    index = np.full((n_tx * n_ty, max_per_tile if fill else 0), n, np.int64)
+    index = np.full((n_tx * n_ty, max_per_tile), n, np.int64)
     binned = np.zeros(n, np.bool_)
     for g in order:
         mx, my = mean2d[g, 0], mean2d[g, 1]
@@ -204,11 +204,8 @@ def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_p
                     continue
                 tile = ty * n_tx + tx
                 binned[g] = True
-                if fill and counts[tile] < max_per_tile:
+                if counts[tile] < max_per_tile:
                     index[tile, counts[tile]] = g
-                if fill:
-                    counts[tile] = min(counts[tile] + 1, max_per_tile)
-                else:
                     counts[tile] += 1
     return counts, index, binned
 
@@ -219,18 +216,17 @@ def bin_gaussians(mean2d, half_extent, depth, conic, reach, n_tx: int, n_ty: int
     gradient): the same tiles, ``K = min(max_per_tile, busiest tile)`` slots each, ordered by ``depth``."""
     arrays = [t.detach().contiguous().numpy() for t in (mean2d, half_extent, conic, reach)]
     order = np.argsort(depth.detach().numpy(), kind="stable")
-    counts, _, _ = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile, False)
-    k = int(min(max_per_tile, counts.max(initial=0)))
-    counts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max(k, 1), True)
+    counts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile)
+    k = max(int(counts.max(initial=0)), 1)
     tiles = np.flatnonzero(counts)
     tiles = tiles[np.argsort(-counts[tiles], kind="stable")]
-    return TileBins(torch.from_numpy(tiles), torch.from_numpy(index[tiles]), torch.from_numpy(counts[tiles]),
-                    torch.from_numpy(binned))
+    return TileBins(torch.from_numpy(tiles), torch.from_numpy(np.ascontiguousarray(index[tiles, :k])),
+                    torch.from_numpy(counts[tiles]), torch.from_numpy(binned))
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _rays(x, y, z, lim):
-    """``x/z``, ``y/z`` clamped as :func:`~vigs_core.mapping.rasterizer._clamped_rays` (bounds ``lim`` (4,)) and
+    """``x/z``, ``y/z`` clamped to ``lim`` (4,) (:func:`~vigs_core.mapping.rasterizer.ray_limits`) and
     whether each lies inside its bounds (its derivative passes)."""
     tx, ty = x / z, y / z
     in_x, in_y = lim[0] <= tx <= lim[1], lim[2] <= ty <= lim[3]
@@ -368,9 +364,7 @@ class ProjectGaussians(torch.autograd.Function):
         T = T_CW.detach().to(torch.float64).numpy()
         R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
         intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-        lx, ly = 1.3 * (0.5 * camera.width / camera.fx), 1.3 * (0.5 * camera.height / camera.fy)
-        lim = np.array([-lx - camera.cx / camera.fx, lx + (camera.width - camera.cx) / camera.fx,
-                        -ly - camera.cy / camera.fy, ly + (camera.height - camera.cy) / camera.fy])
+        lim = np.array(ray_limits(camera))
         n = means.shape[0]
         mean2d, conic, depth, cov2d = np.empty((n, 2)), np.empty((n, 3)), np.empty(n), np.empty((n, 3))
         _project(*f64, R, t, intr, lim, float(eps2d), mean2d, conic, depth, cov2d)
@@ -411,12 +405,12 @@ class CompositeTiles(torch.autograd.Function):
         _forward(tab, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used)
         if ctx.needs_input_grad[0]:
             ctx.kernel_args = (tab, index, counts, tiles, n_tx, ts, width, height, t_end, n_used)
-        ctx.dtype = table.dtype
+        ctx.dtype, ctx.size = table.dtype, (height, width)
         return torch.from_numpy(out).to(table.dtype), torch.from_numpy(1.0 - t_end).to(table.dtype)
 
     @staticmethod
     def backward(ctx, g_feat, g_alpha):
-        height, width = ctx.kernel_args[7], ctx.kernel_args[6]
+        height, width = ctx.size
         g_feat = (np.zeros((height, width, 4), np.float32) if g_feat is None
                   else g_feat.detach().to(torch.float32).contiguous().numpy())
         g_alpha = (np.zeros((height, width), np.float32) if g_alpha is None
