@@ -127,6 +127,15 @@ class VioConfig:
             retried at up to ``inertial_init_keyframes`` later keyframes while its solution is not trustworthy)
             solves the inertial-only problem again over the keyframes since the alignment; when its
             ``|log scale|`` exceeds this the alignment did not hold: failure, back to vision-only, initialise again.
+        scale_monitor_every: after the scale check, every this many keyframes (0 = off) the inertial-only problem
+            is solved again over the last ``inertial_init_keyframes`` keyframes, poses fixed (a rolling scale
+            check): a visual scale that drifts away from the IMU's while the VI-BA runs (its inertial terms
+            absorbed into velocities and biases) shows as a window scale far from 1.
+        scale_monitor_max_drift: a rolling check deviates when its ``|log scale|`` exceeds this (0.25: 28%) with a
+            log-scale standard deviation within ``scale_monitor_max_std`` (windows of little acceleration are
+            ill-conditioned and neither count nor clear).
+        scale_monitor_max_std: see ``scale_monitor_max_drift``.
+        scale_monitor_strikes: this many successive deviating checks are a failure; a consistent one clears them.
         still_max_flow_px: before the front end initialises, a frame whose mean flow from the first frame is
             below this (input pixels) is held at the first frame's pose (see :mod:`vigs_core.vio.odometry`).
     """
@@ -168,6 +177,10 @@ class VioConfig:
     init_agreement_log_scale: float = bounded(0.05, 0, lo_open=True)
     init_agreement_gravity_deg: float = bounded(2.0, 0, lo_open=True)
     max_scale_drift: float = bounded(0.15, 0, lo_open=True)
+    scale_monitor_every: int = bounded(5, 0)
+    scale_monitor_max_drift: float = bounded(0.25, 0, lo_open=True)
+    scale_monitor_max_std: float = bounded(0.05, 0, lo_open=True)
+    scale_monitor_strikes: int = bounded(2, 1)
     still_max_flow_px: float = bounded(1.0, 0)
 
     def __post_init__(self) -> None:

@@ -19,12 +19,14 @@ end drives it with these calls::
     fail(t_ns, reason)                          # then: back to vision-only on the current map, initialise again
     on_keyframe(ids, stamps, poses) -> WorldAlignment | None   # after the keyframe's BA; apply it to the map
     check_scale(ids, stamps, poses) -> WorldAlignment | None   # when scale_check_due(): the scale check
+    monitor_scale(ids, stamps, poses) -> str | None             # after it, each keyframe: the rolling check
 
 Failure detection (after VINS-Mono's and OpenVINS's checks): once metric, a keyframe whose speed or bias norm
 is implausible (``max_speed``, ``max_bias_gyro``, ``max_bias_acc``) or whose position jumped further from the
-previous keyframe's than ``max_speed`` allows, or a scale check whose scale moved more than ``max_scale_drift``,
-is a failure: the estimator forgets its inertial state (velocities, biases, preintegrations, prior) and the
-initialisation starts again on the current map (:meth:`StagedInitializer.restart`); ``failures`` lists them.
+previous keyframe's than ``max_speed`` allows, a scale check whose scale moved more than ``max_scale_drift``,
+or ``scale_monitor_strikes`` successive rolling scale checks far from 1 (``scale_monitor_*``) is a failure: the
+estimator forgets its inertial state (velocities, biases, preintegrations, prior) and the initialisation starts
+again on the current map (:meth:`StagedInitializer.restart`); ``failures`` lists them.
 """
 from __future__ import annotations
 
@@ -91,6 +93,10 @@ class VisualInertialEstimator:
         self.alignment: WorldAlignment | None = None
         self.metric_since_ns: int | None = None   # stamp of the keyframe at which the map became metric
         self.scale_checked = False
+        self.scale_verified_ns: int | None = None   # last keyframe of the last rolling check that found scale ~1
+        self.scale_monitor = {"checks": 0, "deviating": 0}
+        self._monitor_wait = 0
+        self._monitor_strikes = 0
         self.failures: list[dict] = []
         self.reinitialisations = 0
         self.imu_predictions = 0
@@ -344,16 +350,8 @@ class VisualInertialEstimator:
         c = self.config
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0][-3 * c.inertial_init_keyframes:]
-        if len(sel) < 3 or not self.imu_covers(int(stamps_ns[sel[0]]), int(stamps_ns[sel[-1]])):
-            return None
-        try:
-            cfg = self.initializer.inertial_config()
-            if c.scale_check_pose_noise is not None:
-                cfg = replace(cfg, pose_position_std=c.scale_check_pose_noise[0],
-                              pose_rotation_std=c.scale_check_pose_noise[1])
-            res = inertial_only_init(se3_inverse(poses[sel].to(F64)), stamps_ns[sel], self.imu, self.noise,
-                                     self.T_cb, cfg, between=between)
-        except torch.linalg.LinAlgError:
+        res = self._inertial_only(sel, stamps_ns, poses, between) if len(sel) >= 3 else None
+        if res is None:
             return None
         self.scale_history.append({"t_ns": int(stamps_ns[-1]), "keyframes": len(ids), "stage": "scale_check",
                                    "scale": res.scale, "log_scale_std": res.log_scale_std,
@@ -377,6 +375,56 @@ class VisualInertialEstimator:
         for k in ids:
             self.states[k].velocity = alignment.velocity(refit.get(k, self.states[k].velocity))
         return alignment
+
+    def monitor_scale(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor,
+                      between: Callable[[], None] | None = None) -> str | None:
+        """The rolling scale check, after each keyframe's BA once the scale check is done (arguments as
+        :meth:`check_scale`): every ``scale_monitor_every`` keyframes the scale check's inertial-only problem over
+        the last ``inertial_init_keyframes`` keyframes. A well-conditioned solution (log-scale std within
+        ``scale_monitor_max_std``) whose ``|log scale|`` exceeds ``scale_monitor_max_drift`` is a strike, one
+        within it clears the strikes and moves ``scale_verified_ns``. Returns why the state is divergent after
+        ``scale_monitor_strikes`` strikes in a row (the caller then calls :meth:`fail`), else None."""
+        c = self.config
+        if not (c.enabled and c.scale_monitor_every and self.metric and self.scale_checked):
+            return None
+        self._monitor_wait += 1
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0][-c.inertial_init_keyframes:]
+        if self._monitor_wait < c.scale_monitor_every or len(sel) < c.inertial_init_keyframes:
+            return None
+        self._monitor_wait = 0
+        res = self._inertial_only(sel, stamps_ns, poses, between)
+        if res is None or not res.log_scale_std <= c.scale_monitor_max_std:
+            return None
+        self.scale_monitor["checks"] += 1
+        if abs(res.log_scale) <= c.scale_monitor_max_drift:
+            self._monitor_strikes = 0
+            self.scale_verified_ns = int(stamps_ns[sel[-1]])
+            return None
+        self.scale_monitor["deviating"] += 1
+        self._monitor_strikes += 1
+        if self._monitor_strikes < c.scale_monitor_strikes:
+            return None
+        span_s = (int(stamps_ns[sel[-1]]) - int(stamps_ns[sel[0]])) * 1e-9
+        return (f"the scale drifted: the IMU over the last {len(sel)} keyframes ({span_s:.1f} s) finds scale "
+                f"{res.scale:.3f} (+-{100 * res.log_scale_std:.1f}%), {self._monitor_strikes} checks in a row")
+
+    def _inertial_only(self, sel: np.ndarray, stamps_ns: np.ndarray, poses: torch.Tensor,
+                       between: Callable[[], None] | None):
+        """The inertial-only problem over keyframes ``sel`` with their poses fixed (the scale checks' solve;
+        ``scale_check_pose_noise``), or None when the IMU does not cover them or the problem is singular."""
+        c = self.config
+        if not self.imu_covers(int(stamps_ns[sel[0]]), int(stamps_ns[sel[-1]])):
+            return None
+        cfg = self.initializer.inertial_config()
+        if c.scale_check_pose_noise is not None:
+            cfg = replace(cfg, pose_position_std=c.scale_check_pose_noise[0],
+                          pose_rotation_std=c.scale_check_pose_noise[1])
+        try:
+            return inertial_only_init(se3_inverse(poses[sel].to(F64)), stamps_ns[sel], self.imu, self.noise,
+                                      self.T_cb, cfg, between=between)
+        except torch.linalg.LinAlgError:
+            return None
 
     def health(self, ids: list[int], stamps_ns: np.ndarray, poses: torch.Tensor) -> str | None:
         """Once metric, after the BA of the newest keyframe ``ids[-1]`` (ids, stamps (K,) ns and world->camera
@@ -404,6 +452,8 @@ class VisualInertialEstimator:
         self.alignment = None
         self.metric_since_ns = None
         self.scale_checked = False
+        self.scale_verified_ns = None
+        self._monitor_wait = self._monitor_strikes = 0
         self.marginal = None
         self.R_wg, self.log_scale = torch.eye(3, dtype=F64), 0.0
         self.global_bias = torch.zeros(6, dtype=F64)
@@ -430,6 +480,8 @@ class VisualInertialEstimator:
     def _finish(self, alignment: WorldAlignment, t_ns: int, keyframes: int) -> None:
         self.alignment = alignment
         self.metric_since_ns = t_ns
+        self.scale_verified_ns = t_ns
+        self._monitor_wait = self._monitor_strikes = 0
         self.marginal = None
         self.R_wg = torch.eye(3, dtype=F64)
         self.log_scale = 0.0
@@ -451,6 +503,7 @@ class VisualInertialEstimator:
             "imu_predictions": self.imu_predictions,
             "imu_prediction_fallbacks": self.fallbacks,
             "marginalized_keyframes": self.marginalized,
+            "scale_monitor": self.scale_monitor,
             "failures": self.failures,
             "reinitialisations": self.reinitialisations,
         }

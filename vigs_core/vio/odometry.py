@@ -22,15 +22,16 @@
 * optionally (``scale_refinement``), ``metric_hold_delay_s`` after the alignment, when the depth starts being
   held, the scale and gravity direction are re-estimated once inertial-only over the keyframes since the
   alignment and the whole map is rescaled (:meth:`VisualInertialEstimator.check_scale`);
-* once metric, every keyframe's state is checked after its BA and ``metric_hold_delay_s`` after the alignment the
-  scale is checked (:class:`~vigs_core.vio.estimator.VisualInertialEstimator` ``health``, ``check_scale``); a
+* once metric, every keyframe's state is checked after its BA, ``metric_hold_delay_s`` after the alignment the
+  scale is checked, and from then on every few keyframes over a rolling window
+  (:class:`~vigs_core.vio.estimator.VisualInertialEstimator` ``health``, ``check_scale``, ``monitor_scale``); a
   failure sends the estimator back to the vision-only stage on the current map and it initialises again;
 * every processed frame gets a status (:data:`FRAME_STATUSES`, :attr:`VisualInertialOdometry.frame_status`),
   the estimator's when the frame's pose is published (before its keyframe work): ``initialising`` before the
   first alignment, ``tracking`` once metric, ``lost`` from a failure until the
   estimator is metric again, ``reinitialised`` after that. A failure also marks ``lost`` the frames it shows were
-  wrong: those after the previous keyframe (a divergent state), or all since the alignment (a scale that did not
-  hold). The status is the metric claim: ``tracking`` and ``reinitialised`` frames are metric;
+  wrong: those after the previous keyframe (a divergent state), all since the alignment (a scale that did not
+  hold), or those since the last rolling check that held (a scale that drifted). The status is the metric claim: ``tracking`` and ``reinitialised`` frames are metric;
 * alternatively (``marginalize``), a keyframe leaving the window once metric is marginalised into a Gaussian
   prior on the remaining keyframes' poses, velocities and biases (:mod:`vigs_core.vio.marginalization`) and BA
   holds no keyframe fixed;
@@ -210,8 +211,13 @@ class VisualInertialOdometry(DenseOdometry):
         poses = torch.stack([self.keyframes[k].pose for k in ids])
         t0 = self._tic()
         reason = self.vio.health(ids, stamps, poses)
-        if reason is not None:   # the frames since the previous keyframe were tracked with the divergent state
-            self._fail(int(stamps[-1]), reason, int(stamps[-2]))
+        # the frames since the previous keyframe were tracked with the divergent state, or since the last rolling
+        # scale check that held
+        wrong_after = int(stamps[-2]) if reason is not None else self.vio.scale_verified_ns
+        if reason is None:   # frames may be tracked during its solve: it changes the state only after it
+            reason = self.vio.monitor_scale(ids, stamps, poses, between=self._yield_point)
+        if reason is not None:
+            self._fail(int(stamps[-1]), reason, wrong_after)
         alignment = self.vio.on_keyframe(ids, stamps, poses)
         if alignment is None and self.vio.scale_check_due(int(stamps[-1])):
             since = self.vio.metric_since_ns
