@@ -312,3 +312,37 @@ def test_keyframes_outside_the_imu_stay_vision_only():
     est.initializer.stage = Stage.VISUAL_INERTIAL
     assert est.terms([0, 1, 2], T_cw[:3]) is None
     assert est.predict(0, T_cw[0], int(sc.stamps_ns[1])) is None
+
+
+def _monitor(est, T_cw, stamps, first: int) -> list[tuple[int, str]]:
+    """Run the rolling scale check at each keyframe from ``first`` on; the (keyframe, reason) of each failure."""
+    out = []
+    for K in range(first, len(stamps) + 1):
+        if (reason := est.monitor_scale(list(range(K)), stamps[:K], T_cw[:K])) is not None:
+            out.append((K - 1, reason))
+    return out
+
+
+def test_the_rolling_scale_check_flags_a_scale_that_drifts_after_the_first_check():
+    """After the scale check, the inertial-only problem over the last ``inertial_init_keyframes`` keyframes every
+    ``scale_monitor_every`` of them: true poses never strike and keep ``scale_verified_ns`` moving; poses whose
+    motion shrinks to 60% from keyframe 25 on (a visual scale that collapsed while the VI-BA ran) strike twice
+    in a row once the window sits in the shrunk part, and that is a failure; off, nothing is checked."""
+    sc = make_scenario(n=50, spacing_s=0.3, seed=3, duration_s=17.0, bias_gyro=(0.002, -0.02, 0.01),
+                       bias_acc=(0.05, -0.1, 0.08), imu_noise=True)
+    stamps = sc.stamps_ns
+    est, T_cw = _metric_estimator(sc, 1.0, n=50)
+    est.scale_checked = True
+    assert _monitor(est, T_cw, stamps, 21) == [] and est.scale_monitor["deviating"] == 0
+    assert est.scale_monitor["checks"] == 3 and est.scale_verified_ns == int(stamps[49])   # at keyframes 29, 39, 49
+    shrunk = sc.T_wc.clone()
+    p25 = shrunk[25, :3, 3].clone()
+    shrunk[25:, :3, 3] = p25 + 0.6 * (shrunk[25:, :3, 3] - p25)
+    est, _ = _metric_estimator(sc, 1.0, n=50)
+    est.scale_checked = True
+    failures = _monitor(est, se3_inverse(shrunk), stamps, 21)
+    assert failures and failures[0][0] >= 30 and "the scale drifted" in failures[0][1]
+    assert est.scale_verified_ns == int(stamps[29])   # the frames since the last check that held get marked lost
+    est, _ = _metric_estimator(sc, 1.0, n=50, scale_monitor_every=0)
+    est.scale_checked = True
+    assert _monitor(est, se3_inverse(shrunk), stamps, 21) == [] and est.scale_monitor["checks"] == 0

@@ -177,7 +177,7 @@ class VioConfig:
     init_agreement_log_scale: float = bounded(0.05, 0, lo_open=True)
     init_agreement_gravity_deg: float = bounded(2.0, 0, lo_open=True)
     max_scale_drift: float = bounded(0.15, 0, lo_open=True)
-    scale_monitor_every: int = bounded(5, 0)
+    scale_monitor_every: int = bounded(10, 0)
     scale_monitor_max_drift: float = bounded(0.25, 0, lo_open=True)
     scale_monitor_max_std: float = bounded(0.05, 0, lo_open=True)
     scale_monitor_strikes: int = bounded(2, 1)
