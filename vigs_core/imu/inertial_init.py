@@ -278,33 +278,35 @@ def inertial_only_init(
             cost = cost + (dphi * dphi).sum() / cfg.pose_rotation_std**2
         return float(cost)
 
+    # the columns of the state each factor k touches: gravity (2), scale, v_k, v_k+1, b_k (, b_k+1) (, dphi_k,
+    # dphi_k+1); its normal equations are built over these alone and scattered into the full system
+    k_ = torch.arange(n - 1, device=T_wc.device)[:, None]
+    b3, b6 = torch.arange(3, device=T_wc.device), torch.arange(6, device=T_wc.device)
+    col_blocks = [b3.expand(n - 1, 3), 3 + 3 * k_ + b3, 3 + 3 * (k_ + 1) + b3]
+    col_blocks += [c_bias + 6 * k_ + b6, c_bias + 6 * (k_ + 1) + b6] if walk else [(c_bias + b6).expand(n - 1, 6)]
+    if refine:
+        col_blocks += [c_rot + 3 * k_ + b3, c_rot + 3 * (k_ + 1) + b3]
+    cols = torch.cat(col_blocks, 1)                                              # (n-1, c)
+
     def normal_equations(res, state, W):
         bias, dphi = state[3], state[4]
         jac = {name: value[:, :m] for name, value in res.jacobians.items()}
         r = res.residual[:, :m]
-        J = torch.zeros(n - 1, m, P, **f)
-        J[:, :, 0:2] = jac["gravity"]
-        J[:, :, 2:3] = jac["log_scale"]
-        idx = torch.arange(n - 1, device=T_wc.device)
-        for k in range(3):
-            J[idx, :, 3 + 3 * idx + k] = jac["vel_i"][:, :, k]
-            J[idx, :, 3 + 3 * (idx + 1) + k] = jac["vel_j"][:, :, k]
+        blocks = [jac["gravity"], jac["log_scale"], jac["vel_i"], jac["vel_j"], jac["bias_i"]]
         if walk:
-            for k in range(6):
-                J[idx, :, c_bias + 6 * idx + k] = jac["bias_i"][:, :, k]
-                J[idx, :, c_bias + 6 * (idx + 1) + k] = jac["bias_j"][:, :, k]
-        else:  # one shared bias (its r_b rows are dropped: zero)
-            J[:, :, c_bias:c_bias + 6] = jac["bias_i"]
+            blocks.append(jac["bias_j"])
         if refine:  # dphi enters through Exp(dphi): a change d gives the left increment J_l(dphi) d
             J_i, J_j = rotation_jacobians(res)
             Jl = so3_left_jacobian(dphi)
-            J_i, J_j = J_i @ Jl[:-1], J_j @ Jl[1:]
-            for k in range(3):
-                J[idx, :9, c_rot + 3 * idx + k] = J_i[:, :, k]
-                J[idx, :9, c_rot + 3 * (idx + 1) + k] = J_j[:, :, k]
+            pad = torch.zeros(n - 1, m - 9, 3, **f)
+            blocks += [torch.cat((J_i @ Jl[:-1], pad), 1), torch.cat((J_j @ Jl[1:], pad), 1)]
+        J = torch.cat(blocks, 2)                                                 # (n-1, m, c)
         JW = J.transpose(-1, -2) @ W
-        H = (JW @ J).sum(0)
-        grad = (JW @ r[..., None]).sum(0)[:, 0]
+        H = torch.zeros(P * P, **f)
+        H.index_add_(0, (cols[:, :, None] * P + cols[:, None, :]).reshape(-1), (JW @ J).reshape(-1))
+        H = H.view(P, P)
+        grad = torch.zeros(P, **f)
+        grad.index_add_(0, cols.reshape(-1), (JW @ r[..., None]).reshape(-1))
         H[c_bias:c_bias + 6, c_bias:c_bias + 6] += torch.diag(prior_w)
         grad[c_bias:c_bias + 6] += prior_w * (bias[0] - prior_mean)
         if refine:
