@@ -82,11 +82,13 @@ def test_schur_complement_matches_dense_elimination():
     assert torch.allclose(s, s_ref, atol=1e-8 * s_ref.abs().max())
 
 
-def test_normal_equations_match_per_pixel_source_jacobians():
-    """linearize_visual forms the source-pose blocks from J_i = -J_j Ad; compare with the per-pixel J_i."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_normal_equations_match_per_pixel_source_jacobians(compiled):
+    """linearize_visual forms the source-pose blocks from J_i = -J_j Ad; compare with the per-pixel J_i (tensor
+    terms, and the compiled kernel where numba is installed)."""
     poses, disps, coords, edges = make_problem(n=3, grid=(6, 5))
     poses, disps = perturb(poses, disps)
-    sys_ = linearize_visual(poses, disps, edges, coords, INTR, huber_delta=1e9)
+    sys_ = linearize_visual(poses, disps, edges, coords, INTR, huber_delta=1e9, compiled=compiled)
     proj = reproject(poses[edges.ii], poses[edges.jj], disps[edges.ii], coords, INTR, jacobians=True)
     r = edges.target - proj.uv
     W = edges.pixel_weight() * proj.valid[..., None]
@@ -106,6 +108,33 @@ def test_normal_equations_match_per_pixel_source_jacobians():
     assert torch.allclose(sys_.v, v, atol=1e-9 * v.abs().max())
     own = sys_.block_E[:, 0]                                      # block 0 of each source is its own pose
     assert torch.allclose(own, E_src[sys_.src], atol=1e-9 * E_src.abs().max())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_linearisation_equals_the_tensor_one(dtype):
+    """The numba kernel (:mod:`vigs_core.solver.linearize_numba`) gives the tensor version's system: pixels
+    projected behind the depth limit (invalid), Huber-weighted outliers, per-axis confidences, sources with several
+    outgoing edges. Float64 to rounding, float32 to its precision (the kernel sums in float64)."""
+    pytest.importorskip("numba")
+    poses, disps, coords, edges = make_problem(n=4, grid=(16, 10), dtype=dtype)
+    poses, disps = perturb(poses, disps)
+    poses[3] = torch.tensor([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.6], [0, 0, 0, 1]], dtype=dtype) @ poses[3]
+    g = torch.Generator().manual_seed(7)
+    target = edges.target + 4.0 * torch.randn(edges.target.shape, generator=g, dtype=dtype)
+    conf = torch.rand(edges.target.shape, generator=g, dtype=dtype)
+    edges = EdgeSet(edges.ii, edges.jj, target, conf)
+    ref = linearize_visual(poses, disps, edges, coords, INTR, huber_delta=2.0, compiled=False)
+    out = linearize_visual(poses, disps, edges, coords, INTR, huber_delta=2.0, compiled=True)
+    assert 0.05 < float((~ref.valid).float().mean()) < 0.5                # some pixels behind the depth limit
+    rn = ref.residual.norm(dim=-1)[ref.valid]
+    assert float((rn > 2.0).float().mean()) > 0.3                          # the Huber weight is active
+    assert torch.equal(out.valid, ref.valid) and torch.equal(out.block_pose, ref.block_pose)
+    assert ref.block_E.shape[1] == 4                                        # own block + 3 targets per source
+    tol = 1e-10 if dtype == torch.float64 else 1e-4
+    for name in ("B", "v", "C", "w", "block_E", "residual", "cost"):
+        a, b = getattr(ref, name), getattr(out, name)
+        assert a.dtype == b.dtype == dtype, name
+        assert float((a - b).abs().max()) <= tol * float(a.abs().max()), name
 
 
 def test_float32_visual_terms_reach_the_float64_solution():

@@ -38,6 +38,7 @@ from typing import Protocol
 
 import torch
 
+from vigs_core.compiled import numba_available
 from vigs_core.geometry import quat_to_matrix
 
 ALPHA_MIN = 1.0 / 255.0
@@ -566,13 +567,6 @@ class TorchRasterizer:
             layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
             feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
         return RenderOutput(feats[..., :-1], feats[..., -1], alpha, front[sel[bins.binned]])
-
-
-def numba_available() -> bool:
-    """Whether the compiled CPU kernels (:mod:`vigs_core.mapping.rasterizer_numba`) can be used."""
-    import importlib.util
-
-    return importlib.util.find_spec("numba") is not None
 
 
 def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = None) -> Rasterizer:

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import torch
 
+from vigs_core.compiled import numba_available
+from vigs_core.geometry import se3_adjoint, se3_inverse
 from vigs_core.solver.projective import Intrinsics, reproject
 from vigs_core.solver.robust import huber_cost, huber_weight
 
@@ -105,48 +107,17 @@ def visual_cost(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords
 
 
 def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
-                     intr: Intrinsics, huber_delta: float) -> VisualSystem:
+                     intr: Intrinsics, huber_delta: float, compiled: bool = True) -> VisualSystem:
     """Build ``B, E, C, v, w`` at the current estimate with IRLS Huber weights (threshold in pixels).
 
     Args:
         poses: (n, 4, 4) world->camera; disps: (n, P); coords: (P, 2) pixel coordinates of the grid.
+        compiled: on CPU with numba installed, the per-pixel terms and their sums come from one compiled loop
+            (:mod:`vigs_core.solver.linearize_numba`) instead of tensor operations (:func:`_edge_terms`).
     """
     n, P = disps.shape
-    ne = edges.ii.shape[0]
-    r, proj = residuals(poses, disps, edges, coords, intr, jacobians=True)
-    rnorm = r.norm(dim=-1)
-    wr = huber_weight(rnorm, huber_delta) * proj.valid                       # (E, P)
-    W = edges.pixel_weight() * wr[..., None]                                # (E, P, 2)
-    cost = (edges.pixel_weight().mean(-1) * proj.valid * huber_cost(rnorm, huber_delta)).sum()
-
-    # J_i = -J_j Ad (projective.py), so the source blocks follow from the target ones by 6x6 products:
-    # J_i^T W J_i = Ad^T H_jj Ad, J_i^T W J_j = -Ad^T H_jj, J_i^T W r = -Ad^T J_j^T W r
-    Jj = proj.J_j.reshape(ne, 2 * P, 6)
-    WJjT = (W.reshape(ne, 2 * P, 1) * Jj).transpose(1, 2)                   # (E, 6, 2P)
-    AdT = proj.Ad.transpose(1, 2)
-    Hjj = WJjT @ Jj                                                          # (E, 6, 6)
-    Hij = -(AdT @ Hjj)
-    Hii = -(Hij @ proj.Ad)
-    B = torch.zeros(n * n, 6, 6, dtype=poses.dtype, device=poses.device)
     ii, jj = edges.ii, edges.jj
-    B.index_add_(0, ii * n + ii, Hii)
-    B.index_add_(0, ii * n + jj, Hij)
-    B.index_add_(0, jj * n + ii, Hij.transpose(1, 2))
-    B.index_add_(0, jj * n + jj, Hjj)
-    rf = r.reshape(ne, 2 * P, 1)
-    v = torch.zeros(n, 6, dtype=poses.dtype, device=poses.device)
-    vj = WJjT @ rf                                                           # (E, 6, 1)
-    v.index_add_(0, ii, -(AdT @ vj)[..., 0])
-    v.index_add_(0, jj, vj[..., 0])
-    Jd = proj.J_d                                                            # (E, P, 2)
-    WJd = W * Jd
-    C = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
-    w = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
-    C.index_add_(0, ii, WJd[..., 0] * Jd[..., 0] + WJd[..., 1] * Jd[..., 1])
-    w.index_add_(0, ii, WJd[..., 0] * r[..., 0] + WJd[..., 1] * r[..., 1])
-    # E blocks (P, 6) = sum over the 2 rows of a pixel of J_pose^T W J_d; the source's is -E_j Ad
-    Ej = WJd[..., 0:1] * proj.J_j[..., 0, :] + WJd[..., 1:2] * proj.J_j[..., 1, :]   # (E, P, 6)
-    Ei = -(Ej @ proj.Ad)
+    ne = ii.shape[0]
     src, group = torch.unique(ii, return_inverse=True)                       # group: edge -> source slot
     order = torch.argsort(group, stable=True)
     counts = torch.bincount(group, minlength=src.shape[0])
@@ -154,13 +125,63 @@ def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, c
     rank = torch.empty_like(group)
     rank[order] = torch.arange(ne, device=ii.device) - starts[group[order]]
     K = 1 + int(counts.max())
-    block_E = torch.zeros(src.shape[0], K, P, 6, dtype=poses.dtype, device=poses.device)
-    block_E[:, 0].index_add_(0, group, Ei)
-    block_E[group, rank + 1] = Ej
+    if compiled and poses.device.type == "cpu" and numba_available():
+        from vigs_core.solver import linearize_numba
+        T_ji = poses[jj] @ se3_inverse(poses[ii])
+        Ad = se3_adjoint(T_ji)
+        Hjj, vj, C, w, block_E, r, valid, cost = linearize_numba.linearize_edges(
+            T_ji, Ad, disps[ii], coords, edges.target, edges.pixel_weight(), intr, huber_delta, ii, group, rank, n,
+            src.shape[0], K)
+    else:
+        Hjj, vj, Ce, we, Ej, r, valid, cost, Ad = _edge_terms(poses, disps, edges, coords, intr, huber_delta)
+        C = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
+        w = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
+        C.index_add_(0, ii, Ce)
+        w.index_add_(0, ii, we)
+        block_E = torch.zeros(src.shape[0], K, P, 6, dtype=poses.dtype, device=poses.device)
+        block_E[:, 0].index_add_(0, group, -(Ej @ Ad))                     # the source's E_i = -E_j Ad
+        block_E[group, rank + 1] = Ej
+    # J_i = -J_j Ad (projective.py), so the source blocks follow from the target ones by 6x6 products:
+    # J_i^T W J_i = Ad^T H_jj Ad, J_i^T W J_j = -Ad^T H_jj, J_i^T W r = -Ad^T J_j^T W r
+    AdT = Ad.transpose(1, 2)
+    Hij = -(AdT @ Hjj)
+    Hii = -(Hij @ Ad)
+    B = torch.zeros(n * n, 6, 6, dtype=poses.dtype, device=poses.device)
+    B.index_add_(0, ii * n + ii, Hii)
+    B.index_add_(0, ii * n + jj, Hij)
+    B.index_add_(0, jj * n + ii, Hij.transpose(1, 2))
+    B.index_add_(0, jj * n + jj, Hjj)
+    v = torch.zeros(n, 6, dtype=poses.dtype, device=poses.device)
+    v.index_add_(0, ii, -(AdT @ vj[..., None])[..., 0])
+    v.index_add_(0, jj, vj)
     block_pose = torch.full((src.shape[0], K), -1, dtype=torch.long, device=ii.device)
     block_pose[:, 0] = src
     block_pose[group, rank + 1] = jj
-    return VisualSystem(B.view(n, n, 6, 6), v, C, w, src, block_pose, block_E, cost, r, proj.valid)
+    return VisualSystem(B.view(n, n, 6, 6), v, C, w, src, block_pose, block_E, cost, r, valid)
+
+
+def _edge_terms(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor, intr: Intrinsics,
+                huber_delta: float) -> tuple:
+    """Per-edge terms of :func:`linearize_visual` with tensor operations: ``H_jj`` (E, 6, 6), ``v_j`` (E, 6), the
+    per-pixel ``C`` and ``w`` contributions (E, P), the target's E block rows ``E_j`` (E, P, 6), residual (E, P,
+    2), valid (E, P), the cost and the adjoints ``Ad`` (E, 6, 6) of the relative poses."""
+    ne, P = edges.ii.shape[0], disps.shape[1]
+    r, proj = residuals(poses, disps, edges, coords, intr, jacobians=True)
+    rnorm = r.norm(dim=-1)
+    wr = huber_weight(rnorm, huber_delta) * proj.valid                       # (E, P)
+    W = edges.pixel_weight() * wr[..., None]                                # (E, P, 2)
+    cost = (edges.pixel_weight().mean(-1) * proj.valid * huber_cost(rnorm, huber_delta)).sum()
+    Jj = proj.J_j.reshape(ne, 2 * P, 6)
+    WJjT = (W.reshape(ne, 2 * P, 1) * Jj).transpose(1, 2)                   # (E, 6, 2P)
+    Hjj = WJjT @ Jj                                                          # (E, 6, 6)
+    vj = (WJjT @ r.reshape(ne, 2 * P, 1))[..., 0]                            # (E, 6)
+    Jd = proj.J_d                                                            # (E, P, 2)
+    WJd = W * Jd
+    Ce = WJd[..., 0] * Jd[..., 0] + WJd[..., 1] * Jd[..., 1]
+    we = WJd[..., 0] * r[..., 0] + WJd[..., 1] * r[..., 1]
+    # E blocks (P, 6) = sum over the 2 rows of a pixel of J_pose^T W J_d
+    Ej = WJd[..., 0:1] * proj.J_j[..., 0, :] + WJd[..., 1:2] * proj.J_j[..., 1, :]   # (E, P, 6)
+    return Hjj, vj, Ce, we, Ej, r, proj.valid, cost, proj.Ad
 
 
 def schur_reduce(system: VisualSystem, C_damped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
