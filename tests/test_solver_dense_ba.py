@@ -73,7 +73,7 @@ def test_schur_complement_matches_dense_elimination():
     for a, src in enumerate(sys_.src.tolist()):
         for k, pose in enumerate(sys_.block_pose[a].tolist()):
             if pose >= 0:
-                E[pose, :, src] += sys_.block_E[a, k].T
+                E[pose, :, src] += sys_.block_E[a, k]
     E = E.reshape(6 * n, n * P)
     B = sys_.B.permute(0, 2, 1, 3).reshape(6 * n, 6 * n)
     S_ref = B - E @ torch.diag(1 / C.reshape(-1)) @ E.T
@@ -106,7 +106,7 @@ def test_normal_equations_match_per_pixel_source_jacobians(compiled):
         E_src[i] += (W[e] * proj.J_d[e])[..., None].mul(proj.J_i[e]).sum(1)
     assert torch.allclose(sys_.B, B, atol=1e-9 * B.abs().max())
     assert torch.allclose(sys_.v, v, atol=1e-9 * v.abs().max())
-    own = sys_.block_E[:, 0]                                      # block 0 of each source is its own pose
+    own = sys_.block_E[:, 0].transpose(1, 2)                      # block 0 of each source is its own pose
     assert torch.allclose(own, E_src[sys_.src], atol=1e-9 * E_src.abs().max())
 
 

@@ -70,9 +70,9 @@ def _edge_terms(T_ji, Ad, disp, rays, target, conf, fx, fy, cx, cy, delta, src_r
             p5, q5 = W0 * a5, W1 * b5
             e0, e1, e2 = u0 * d0, u1 * d1, p2 * d0 + q2 * d1
             e3, e4, e5 = p3 * d0 + q3 * d1, p4 * d0 + q4 * d1, p5 * d0 + q5 * d1
-            E_j[p, 0], E_j[p, 1], E_j[p, 2], E_j[p, 3], E_j[p, 4], E_j[p, 5] = e0, e1, e2, e3, e4, e5
+            E_j[0, p], E_j[1, p], E_j[2, p], E_j[3, p], E_j[4, p], E_j[5, p] = e0, e1, e2, e3, e4, e5
             for k in range(6):
-                E_i[p, k] -= (e0 * A[0, k] + e1 * A[1, k] + e2 * A[2, k] + e3 * A[3, k] + e4 * A[4, k]
+                E_i[k, p] -= (e0 * A[0, k] + e1 * A[1, k] + e2 * A[2, k] + e3 * A[3, k] + e4 * A[4, k]
                               + e5 * A[5, k])
             g0 += u0 * r0
             g1 += u1 * r1
@@ -121,7 +121,7 @@ def linearize_edges(T_ji: torch.Tensor, Ad: torch.Tensor, disp: torch.Tensor, co
     (E, 6, 6), source disparities ``disp`` (E, P), shared pixel coordinates ``coords`` (P, 2), targets and per-axis
     confidences (E, P, 2); edge ``e`` leaves keyframe ``src[e]`` (of ``n``) whose E blocks are slot ``slot[e]`` (of
     ``n_slots``, ``K`` blocks each), its own block 0 and the edge's ``rank[e] + 1``. CPU tensors. Returns ``H_jj``
-    (E, 6, 6), ``v_j`` (E, 6), ``C`` and ``w`` (n, P), the E blocks (n_slots, K, P, 6), residual (E, P, 2), valid
+    (E, 6, 6), ``v_j`` (E, 6), ``C`` and ``w`` (n, P), the E blocks (n_slots, K, 6, P), residual (E, P, 2), valid
     (E, P) and the cost (scalar), in ``disp``'s dtype (valid: bool)."""
     E, P = disp.shape
     d = disp.contiguous().numpy()
@@ -129,7 +129,7 @@ def linearize_edges(T_ji: torch.Tensor, Ad: torch.Tensor, disp: torch.Tensor, co
                      (coords[:, 1].double().numpy() - intr.cy) / intr.fy), 1)
     H_jj, v_j, cost = np.empty((E, 6, 6)), np.empty((E, 6)), np.empty(E)
     C, w = np.zeros((n, P), d.dtype), np.zeros((n, P), d.dtype)
-    block_E = np.zeros((n_slots, K, P, 6), d.dtype)
+    block_E = np.zeros((n_slots, K, 6, P), d.dtype)
     residual, valid = np.empty((E, P, 2), d.dtype), np.empty((E, P), np.bool_)
     _edge_terms(T_ji.double().contiguous().numpy(), Ad.double().contiguous().numpy(), d, rays,
                 target.contiguous().numpy(), conf.contiguous().numpy(), float(intr.fx), float(intr.fy),

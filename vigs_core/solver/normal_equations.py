@@ -12,7 +12,7 @@ the Gauss-Newton system is
 cheaply: ``(B - E C^-1 E^T) dxi = v - E C^-1 w`` (the reduced camera system), then
 ``dd = C^-1 (w - E^T dxi)``.
 
-``E`` is stored sparsely, as "blocks": one (P, 6) matrix per (pose, source keyframe) pair that shares
+``E`` is stored sparsely, as "blocks": one (6, P) matrix per (pose, source keyframe) pair that shares
 disparities. For a source keyframe ``i`` these are ``i`` itself (the sum over all edges leaving ``i``) and each
 target ``j`` of an edge ``(i, j)``. The Schur product ``E C^-1 E^T`` is then a sum over pairs of blocks with the
 same source, so its cost grows with the number of edges, not with the square of the window.
@@ -66,7 +66,8 @@ class VisualSystem:
 
     ``B (n, n, 6, 6)``, ``v (n, 6)``, ``C (n, P)``, ``w (n, P)``. E blocks grouped by source keyframe:
     ``src (s,)`` the keyframes that own disparities with observations, ``block_pose (s, K)`` the pose index of
-    each block (-1 for padding), ``block_E (s, K, P, 6)``; block 0 of a source is its own pose. ``cost``
+    each block (-1 for padding), ``block_E (s, K, 6, P)`` (pixels last: the Schur products' layout); block 0 of a
+    source is its own pose. ``cost``
     (scalar, ``sum conf * rho(|r|)``), ``residual (E, P, 2)`` and ``valid (E, P)``.
     """
 
@@ -138,9 +139,9 @@ def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, c
         w = torch.zeros(n, P, dtype=poses.dtype, device=poses.device)
         C.index_add_(0, ii, Ce)
         w.index_add_(0, ii, we)
-        block_E = torch.zeros(src.shape[0], K, P, 6, dtype=poses.dtype, device=poses.device)
-        block_E[:, 0].index_add_(0, group, -(Ej @ Ad))                     # the source's E_i = -E_j Ad
-        block_E[group, rank + 1] = Ej
+        block_E = torch.zeros(src.shape[0], K, 6, P, dtype=poses.dtype, device=poses.device)
+        block_E[:, 0].index_add_(0, group, -(Ej @ Ad).transpose(1, 2))     # the source's E_i = -E_j Ad
+        block_E[group, rank + 1] = Ej.transpose(1, 2)
     # J_i = -J_j Ad (projective.py), so the source blocks follow from the target ones by 6x6 products:
     # J_i^T W J_i = Ad^T H_jj Ad, J_i^T W J_j = -Ad^T H_jj, J_i^T W r = -Ad^T J_j^T W r
     AdT = Ad.transpose(1, 2)
@@ -179,7 +180,7 @@ def _edge_terms(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords
     WJd = W * Jd
     Ce = WJd[..., 0] * Jd[..., 0] + WJd[..., 1] * Jd[..., 1]
     we = WJd[..., 0] * r[..., 0] + WJd[..., 1] * r[..., 1]
-    # E blocks (P, 6) = sum over the 2 rows of a pixel of J_pose^T W J_d
+    # E block rows (6,) per pixel = sum over its 2 rows of J_pose^T W J_d
     Ej = WJd[..., 0:1] * proj.J_j[..., 0, :] + WJd[..., 1:2] * proj.J_j[..., 1, :]   # (E, P, 6)
     return Hjj, vj, Ce, we, Ej, r, proj.valid, cost, proj.Ad
 
@@ -191,9 +192,9 @@ def schur_reduce(system: VisualSystem, C_damped: torch.Tensor) -> tuple[torch.Te
     keyframe the (6K, P) stack ``M`` of its blocks gives ``M C^-1 M^T`` in one batched product.
     """
     n = system.B.shape[0]
-    ns, K, P, _ = system.block_E.shape
+    ns, K, _, P = system.block_E.shape
     inv_C = (1.0 / C_damped)[system.src]                                      # (s, P)
-    M = system.block_E.permute(0, 1, 3, 2).reshape(ns, 6 * K, P)
+    M = system.block_E.reshape(ns, 6 * K, P)
     Q = (M * inv_C[:, None, :]) @ M.transpose(1, 2)                            # (s, 6K, 6K)
     Q = Q.view(ns, K, 6, K, 6).permute(0, 1, 3, 2, 4)                         # (s, K, K, 6, 6)
     pa = system.block_pose[:, :, None].expand(ns, K, K)
@@ -213,7 +214,7 @@ def back_substitute(system: VisualSystem, C_damped: torch.Tensor, dxi: torch.Ten
     """Disparity update ``dd = C^-1 (w - E^T dxi)`` (n, P) from the pose update ``dxi`` (n, 6)."""
     bp = system.block_pose
     dx_blocks = torch.where((bp >= 0)[..., None], dxi[bp.clamp(min=0)], torch.zeros_like(dxi[:1]))  # (s, K, 6)
-    Etx = torch.einsum("skpx,skx->sp", system.block_E, dx_blocks)
+    Etx = torch.einsum("skxp,skx->sp", system.block_E, dx_blocks)
     rhs = system.w.clone()
     rhs.index_add_(0, system.src, -Etx)
     return rhs / C_damped
