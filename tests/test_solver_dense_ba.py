@@ -6,7 +6,7 @@ import torch
 
 from vigs_core.geometry import se3_exp, se3_inverse
 from vigs_core.solver import (BAConfig, EdgeSet, Intrinsics, align_pose, bundle_adjust, huber_weight,
-                              linearize_visual, reproject, schur_reduce)
+                              linearize_visual, reproject, schur_reduce, visual_cost)
 
 torch.set_num_threads(1)
 INTR = Intrinsics(180.0, 180.0, 94.5, 59.5)
@@ -135,6 +135,10 @@ def test_compiled_linearisation_equals_the_tensor_one(dtype):
         a, b = getattr(ref, name), getattr(out, name)
         assert a.dtype == b.dtype == dtype, name
         assert float((a - b).abs().max()) <= tol * float(a.abs().max()), name
+    cost = visual_cost(poses, disps, edges, coords, INTR, 2.0, compiled=True)     # the LM trials' cost alone
+    assert cost.dtype == dtype and abs(float(cost) - float(ref.cost)) <= tol * float(ref.cost)
+    assert abs(float(visual_cost(poses, disps, edges, coords, INTR, 2.0, compiled=False)) - float(ref.cost)) <= (
+        tol * float(ref.cost))
 
 
 def test_float32_visual_terms_reach_the_float64_solution():

@@ -10,7 +10,8 @@ target block ``H_jj = sum J_j^T W J_j`` and gradient ``v_j = sum J_j^T W r`` (fl
 each pixel's ``J_d^T W J_d`` and ``J_d^T W r`` to its source keyframe's ``C`` and ``w``, writes the coupling row
 ``E_j = J_j^T W J_d`` (6,) to the edge's E block and adds ``E_i = -E_j Ad`` to the source's own block, and sums the
 robust cost ``conf rho(|r|)``. Per-pixel arithmetic is float64; the per-pixel outputs take the disparities' dtype.
-The interpreter lock is released while it runs (``nogil``).
+The cost alone (the LM trial steps) has a loop of its own. The interpreter lock is released while they run
+(``nogil``).
 """
 from __future__ import annotations
 
@@ -114,6 +115,43 @@ def _edge_terms(T_ji, Ad, disp, rays, target, conf, fx, fy, cx, cy, delta, src_r
         cost[e] = c_sum
 
 
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _edge_cost(T_ji, disp, rays, target, conf, fx, fy, cx, cy, delta):
+    n_edges, n_pix = disp.shape
+    total = 0.0
+    for e in range(n_edges):
+        R00, R01, R02, t0 = T_ji[e, 0, 0], T_ji[e, 0, 1], T_ji[e, 0, 2], T_ji[e, 0, 3]
+        R10, R11, R12, t1 = T_ji[e, 1, 0], T_ji[e, 1, 1], T_ji[e, 1, 2], T_ji[e, 1, 3]
+        R20, R21, R22, t2 = T_ji[e, 2, 0], T_ji[e, 2, 1], T_ji[e, 2, 2], T_ji[e, 2, 3]
+        for p in range(n_pix):
+            x, y, d = rays[p, 0], rays[p, 1], float(disp[e, p])
+            Z = R20 * x + R21 * y + R22 + t2 * d
+            if not Z > MIN_DEPTH_RATIO:
+                continue
+            iz = 1.0 / Z
+            r0 = target[e, p, 0] - (fx * (R00 * x + R01 * y + R02 + t0 * d) * iz + cx)
+            r1 = target[e, p, 1] - (fy * (R10 * x + R11 * y + R12 + t1 * d) * iz + cy)
+            rn = math.sqrt(r0 * r0 + r1 * r1)
+            rho = 0.5 * rn * rn if rn <= delta else delta * (rn - 0.5 * delta)
+            total += 0.5 * (conf[e, p, 0] + conf[e, p, 1]) * rho
+    return total
+
+
+def _rays(coords: torch.Tensor, intr: Intrinsics) -> np.ndarray:
+    """(P, 2) normalised ray coordinates ``(x, y)`` (z = 1) of pixel coordinates, float64."""
+    return np.stack(((coords[:, 0].double().numpy() - intr.cx) / intr.fx,
+                     (coords[:, 1].double().numpy() - intr.cy) / intr.fy), 1)
+
+
+def edge_cost(T_ji: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor, target: torch.Tensor, conf: torch.Tensor,
+              intr: Intrinsics, huber_delta: float) -> torch.Tensor:
+    """The robust cost ``sum conf rho(|r|)`` (scalar, ``disp``'s dtype) of the edges of :func:`linearize_edges`."""
+    total = _edge_cost(T_ji.double().contiguous().numpy(), disp.contiguous().numpy(), _rays(coords, intr),
+                       target.contiguous().numpy(), conf.contiguous().numpy(), float(intr.fx), float(intr.fy),
+                       float(intr.cx), float(intr.cy), float(huber_delta))
+    return torch.tensor(total, dtype=disp.dtype)
+
+
 def linearize_edges(T_ji: torch.Tensor, Ad: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor,
                     target: torch.Tensor, conf: torch.Tensor, intr: Intrinsics, huber_delta: float, src: torch.Tensor,
                     slot: torch.Tensor, rank: torch.Tensor, n: int, n_slots: int, K: int) -> tuple:
@@ -125,13 +163,11 @@ def linearize_edges(T_ji: torch.Tensor, Ad: torch.Tensor, disp: torch.Tensor, co
     (E, P) and the cost (scalar), in ``disp``'s dtype (valid: bool)."""
     E, P = disp.shape
     d = disp.contiguous().numpy()
-    rays = np.stack(((coords[:, 0].double().numpy() - intr.cx) / intr.fx,
-                     (coords[:, 1].double().numpy() - intr.cy) / intr.fy), 1)
     H_jj, v_j, cost = np.empty((E, 6, 6)), np.empty((E, 6)), np.empty(E)
     C, w = np.zeros((n, P), d.dtype), np.zeros((n, P), d.dtype)
     block_E = np.zeros((n_slots, K, 6, P), d.dtype)
     residual, valid = np.empty((E, P, 2), d.dtype), np.empty((E, P), np.bool_)
-    _edge_terms(T_ji.double().contiguous().numpy(), Ad.double().contiguous().numpy(), d, rays,
+    _edge_terms(T_ji.double().contiguous().numpy(), Ad.double().contiguous().numpy(), d, _rays(coords, intr),
                 target.contiguous().numpy(), conf.contiguous().numpy(), float(intr.fx), float(intr.fy),
                 float(intr.cx), float(intr.cy), float(huber_delta), src.numpy(), slot.numpy(), rank.numpy(),
                 H_jj, v_j, C, w, block_E, residual, valid, cost)

@@ -100,8 +100,14 @@ def residuals(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: 
 
 
 def visual_cost(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
-                intr: Intrinsics, huber_delta: float) -> torch.Tensor:
-    """Robust cost ``sum_e sum_p conf * rho(|r|)`` (scalar) over valid projections."""
+                intr: Intrinsics, huber_delta: float, compiled: bool = True) -> torch.Tensor:
+    """Robust cost ``sum_e sum_p conf * rho(|r|)`` (scalar) over valid projections (``compiled``: as
+    :func:`linearize_visual`)."""
+    if compiled and poses.device.type == "cpu" and numba_available():
+        from vigs_core.solver import linearize_numba
+        T_ji = poses[edges.jj] @ se3_inverse(poses[edges.ii])
+        return linearize_numba.edge_cost(T_ji, disps[edges.ii], coords, edges.target, edges.pixel_weight(), intr,
+                                         huber_delta)
     r, proj = residuals(poses, disps, edges, coords, intr)
     conf = edges.pixel_weight().mean(-1) * proj.valid
     return (conf * huber_cost(r.norm(dim=-1), huber_delta)).sum()
