@@ -160,7 +160,8 @@ def test_still_start_at_low_frame_rate_does_not_initialise_on_noise(room_sequenc
 
 def test_metric_windows_hold_the_fixed_keyframes_depth(room_sequence, monkeypatch):
     """Once metric (here at once: ``metric_hold_delay_s`` 0) every BA of the sliding window holds the fixed
-    keyframe's disparities, none before; the trajectory stays metric."""
+    keyframe's disparities, none before; the trajectory stays metric. The room becomes metric about 0.4 s
+    before its end, so only a few metric BAs run (at least the alignment's and the next keyframe's)."""
     import vigs_core.frontend.odometry as frontend
     stamps, images, imu, T_wb, _ = room_sequence
     calls = []
@@ -176,7 +177,7 @@ def test_metric_windows_hold_the_fixed_keyframes_depth(room_sequence, monkeypatc
     _run(odo, stamps, images)
     assert odo.vio.metric
     metric = [hold for is_metric, hold in calls if is_metric]
-    assert len(metric) >= 4 and all(h is not None and int(h.sum()) == 1 and bool(h[0]) for h in metric)
+    assert len(metric) >= 2 and all(h is not None and int(h.sum()) == 1 and bool(h[0]) for h in metric)
     assert all(hold is None for is_metric, hold in calls if not is_metric)
     t, T_cw = odo.final_frame_poses()
     p = (torch.linalg.inv(T_cw) @ torch.linalg.inv(T_BC))[:, :3, 3].numpy()   # body positions

@@ -285,7 +285,10 @@ class DenseOdometry:
                 self._process_uninitialized(image)
             else:
                 self._track(image)
-            pose = frame.odom if frame.odom is not None else self._pose_before_initialization(frame.t_ns)
+            if frame.keyframe and self.initialized:   # after its keyframe work: the keyframe's pose
+                pose = self.keyframes[frame.ref].pose
+            else:
+                pose = frame.odom if frame.odom is not None else self._pose_before_initialization(frame.t_ns)
             if pose is not None:   # posed without tracking (the initialisation's frame, a held one)
                 self._send_pose(pose)
         finally:
@@ -671,21 +674,27 @@ class DenseOdometry:
         d = (proj.uv[0] - proj.uv[1]).norm(dim=-1)
         return float((w * d).sum() / w.sum()) if float(w.sum()) > 0 else 0.0
 
+    def _current_pose(self, f: _Frame) -> torch.Tensor:
+        """A posed frame's pose in the map as it is now: relative to its reference keyframe's current pose (BA and
+        loop corrections move keyframes; ``odom`` keeps the pose as output), or as output when it has none."""
+        return f.rel @ self.keyframes[f.ref].pose if f.ref is not None and f.rel is not None else f.odom
+
     def _predict_pose(self) -> torch.Tensor:
-        posed = []   # the last two posed frames before the current one, oldest first
+        posed = []   # the last two posed frames before the current one, oldest first, in the current map
         for f in itertools.islice(reversed(self.frames), 1, None):
             if f.odom is not None:
-                posed.insert(0, f)
+                posed.insert(0, (f.t_ns, self._current_pose(f)))
                 if len(posed) == 2:
                     break
         if len(posed) == 1:
-            return posed[0].odom
-        step = posed[1].odom @ se3_inverse(posed[0].odom)
-        ratio = (self.frames[-1].t_ns - posed[1].t_ns) / max(posed[1].t_ns - posed[0].t_ns, 1)
+            return posed[0][1]
+        (t0, T0), (t1, T1) = posed
+        step = T1 @ se3_inverse(T0)
+        ratio = (self.frames[-1].t_ns - t1) / max(t1 - t0, 1)
         if abs(ratio - 1.0) > self.config.cv_rescale_tolerance:
             # frames skipped or dropped: constant velocity over time, not over frames, T^r = Exp(r Log T)
             step = se3_exp(ratio * se3_log(step))
-        pred = step @ posed[1].odom
+        pred = step @ T1
         # re-orthonormalise: each extrapolation doubles the rounding error of the rotation, which otherwise
         # grows from frame to frame until the poses overflow
         pred[:3, :3] = nearest_rotation(pred[:3, :3])
@@ -717,7 +726,6 @@ class DenseOdometry:
             for _ in range(cfg.refine_rounds):
                 self._refine_edges(new_edges)
                 self._ba(cfg.ba.iterations)
-            f.odom = self.keyframes[new.id].pose
             self._yield_point()
             self._after_keyframe()
         finally:

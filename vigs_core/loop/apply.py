@@ -10,7 +10,6 @@ PGBA's snapshot get the correction of the newest keyframe of the snapshot (they 
 """
 from __future__ import annotations
 
-import itertools
 from typing import Any, Iterable
 
 import torch
@@ -53,8 +52,8 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
 
     Keyframe poses (world->camera ``T_cw``) become ``T'_WC^{-1}``, disparities are divided by ``c``; the poses
     kept relative to a keyframe (frames, tracked keyframe poses: ``scale_relative_translations``) keep their
-    rotation with the translation scaled by that keyframe's ``c``; the causal poses of the two latest frames
-    (the constant-velocity motion model reads them) are recomputed from their reference keyframes. Returns
+    rotation with the translation scaled by that keyframe's ``c``. The frames' causal poses stay as output (the
+    constant-velocity motion model reads the latest frames through their reference keyframes). Returns
     ``{kf_id: (T'_WC, c)}`` of the corrected keyframes.
     """
     per_kf = corrections_for(sorted(odometry.keyframes), corrections)
@@ -69,9 +68,6 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
             kf.pose, kf.disp = pose, kf.disp / scale
             updates[k] = (T, scale)
     odometry.scale_relative_translations({k: scale for k, (_, scale) in updates.items()})
-    posed = itertools.islice((f for f in reversed(odometry.frames) if f.ref is not None and f.odom is not None), 2)
-    for f in list(posed):
-        f.odom = f.rel @ odometry.keyframes[f.ref].pose
     return updates
 
 
