@@ -1,7 +1,7 @@
 """IMU faults on the shipped sample, through the streaming core the frontend node drives
 (:class:`vigs_core.system.stream.OdometryStream`: IMU samples in recorded order, each frame once the IMU covers
-it): a 2 s IMU gap after the IMU initialisation, one IMU sample stamped 1000 s in the future, and an
-accelerometer bias step.
+it): a 2 s IMU gap after the IMU initialisation, one IMU sample stamped 1000 s in the future, an
+accelerometer bias step, and (forced) a rolling scale check that fails.
 
 Every case checks the metric claim: no frame published as metric is off by more than ``BAD_M``.
 The sample initialises the IMU about 10 s in (``GAP_START_S`` is after it). Before this was handled the gap sent
@@ -131,3 +131,33 @@ def test_the_frontend_engine_reports_the_failure_once_and_the_status_it_leaves(c
     assert len(failed) == 1 and "accelerometer bias" in outs[failed[0]].failure
     assert outs[failed[0] - 1].status == "tracking" and outs[failed[0] - 1].inertial_initialized
     assert {o.status for o in outs[failed[0]:]} == {"lost"} and not outs[-1].inertial_initialized
+
+
+def test_a_rolling_scale_check_failure_marks_the_frames_since_the_last_check_that_held(clean, monkeypatch):
+    """The odometry's side of the rolling scale check (``VisualInertialEstimator.monitor_scale``, tested on its
+    own in test_vio_initialization.py): made to fail at the first keyframe 3 s after the alignment, with the last
+    check that held 1 s after it, the frames published since that check are marked ``lost`` afterwards, frames
+    before it stay metric, the failure is recorded with its reason and the estimator is no longer metric."""
+    from vigs_core.vio.estimator import VisualInertialEstimator
+
+    imu, _ = clean
+    fired = {}
+
+    def monitor(self, ids, stamps_ns, poses, between=None):
+        if self.metric and not fired and int(stamps_ns[-1]) - self.metric_since_ns > 3 * 10**9:
+            self.scale_verified_ns = fired["verified"] = self.metric_since_ns + 10**9
+            fired["at"], fired["since"] = int(stamps_ns[-1]), self.metric_since_ns
+            return "the scale drifted (test)"
+        return None
+
+    monkeypatch.setattr(VisualInertialEstimator, "monitor_scale", monitor)
+    _, _, stream = stream_run(imu)
+    odo = stream.odometry
+    assert fired and odo.vio.failures[0] == {"t_ns": fired["at"], "reason": "the scale drifted (test)"}
+    status = odo.frame_status
+    since = odo.vio.metric_since_ns if odo.vio.metric else None
+    verified = [s for t, s in status.items() if fired["since"] < t <= fired["verified"]]
+    assert len(verified) > 10 and set(verified) == {"tracking"}
+    wrong = [s for t, s in status.items() if fired["verified"] < t <= fired["at"]]
+    assert len(wrong) > 20 and set(wrong) == {"lost"}
+    assert since is None or since > fired["at"]

@@ -211,13 +211,11 @@ class VisualInertialOdometry(DenseOdometry):
         poses = torch.stack([self.keyframes[k].pose for k in ids])
         t0 = self._tic()
         reason = self.vio.health(ids, stamps, poses)
-        # the frames since the previous keyframe were tracked with the divergent state, or since the last rolling
-        # scale check that held
-        wrong_after = int(stamps[-2]) if reason is not None else self.vio.scale_verified_ns
-        if reason is None:   # frames may be tracked during its solve: it changes the state only after it
-            reason = self.vio.monitor_scale(ids, stamps, poses, between=self._yield_point)
-        if reason is not None:
-            self._fail(int(stamps[-1]), reason, wrong_after)
+        if reason is not None:   # the frames since the previous keyframe were tracked with the divergent state
+            self._fail(int(stamps[-1]), reason, int(stamps[-2]))
+        # frames may be tracked during the rolling check's solve: it changes the state only after it
+        elif (reason := self.vio.monitor_scale(ids, stamps, poses, between=self._yield_point)) is not None:
+            self._fail(int(stamps[-1]), reason, self.vio.scale_verified_ns)   # since the last check that held
         alignment = self.vio.on_keyframe(ids, stamps, poses)
         if alignment is None and self.vio.scale_check_due(int(stamps[-1])):
             since = self.vio.metric_since_ns
