@@ -140,7 +140,8 @@ def run_clip(clip: Path, out: Path, params: str | None) -> dict:
 
 def run_future_stamp(clip: Path, out: Path, at_s: float, params: str | None) -> dict:
     """The clip through an OdometryStream, IMU in recorded order with one sample stamped 1000 s ahead at ``at_s``;
-    writes trajectory.txt, odometry.txt and frame_status.txt as ``vigs run`` does. Also returns when the IMU was back in use."""
+    writes trajectory.txt, odometry.txt and frame_status.txt as ``vigs run`` does. Also returns when the IMU was
+    back in use."""
     from vigs_core.io import write_frame_status, write_tum
     from vigs_core.system import OdometryStream
     from vigs_core.system.pipeline import poses_to_trajectory

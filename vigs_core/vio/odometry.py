@@ -31,7 +31,8 @@
   first alignment, ``tracking`` once metric, ``lost`` from a failure until the
   estimator is metric again, ``reinitialised`` after that. A failure also marks ``lost`` the frames it shows were
   wrong: those after the previous keyframe (a divergent state), all since the alignment (a scale that did not
-  hold), or those since the last rolling check that held (a scale that drifted). The status is the metric claim: ``tracking`` and ``reinitialised`` frames are metric;
+  hold), or those since the last rolling check that held (a scale that drifted). The status is the metric
+  claim: ``tracking`` and ``reinitialised`` frames are metric;
 * alternatively (``marginalize``), a keyframe leaving the window once metric is marginalised into a Gaussian
   prior on the remaining keyframes' poses, velocities and biases (:mod:`vigs_core.vio.marginalization`) and BA
   holds no keyframe fixed;
