@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from vigs_core.solver.projective import MIN_DEPTH_RATIO, Intrinsics
+from vigs_core.solver.projective import MIN_DEPTH_RATIO, Intrinsics, pixel_rays
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -138,9 +138,8 @@ def _edge_cost(T_ji, disp, rays, target, conf, fx, fy, cx, cy, delta):
 
 
 def _rays(coords: torch.Tensor, intr: Intrinsics) -> np.ndarray:
-    """(P, 2) normalised ray coordinates ``(x, y)`` (z = 1) of pixel coordinates, float64."""
-    return np.stack(((coords[:, 0].double().numpy() - intr.cx) / intr.fx,
-                     (coords[:, 1].double().numpy() - intr.cy) / intr.fy), 1)
+    """(P, 2) float64 ``(x, y)`` of the pixels' normalised rays (:func:`~vigs_core.solver.projective.pixel_rays`)."""
+    return pixel_rays(coords.double(), intr)[:, :2].contiguous().numpy()
 
 
 def edge_cost(T_ji: torch.Tensor, disp: torch.Tensor, coords: torch.Tensor, target: torch.Tensor, conf: torch.Tensor,

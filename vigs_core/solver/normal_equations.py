@@ -99,15 +99,22 @@ def residuals(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: 
     return edges.target - proj.uv, proj
 
 
+def _kernels(compiled: bool, poses: torch.Tensor):
+    """The compiled kernels (:mod:`vigs_core.solver.linearize_numba`) where they apply: ``compiled`` asked for, CPU
+    tensors, numba installed; else None (the tensor operations)."""
+    if compiled and poses.device.type == "cpu" and numba_available():
+        from vigs_core.solver import linearize_numba
+        return linearize_numba
+    return None
+
+
 def visual_cost(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, coords: torch.Tensor,
                 intr: Intrinsics, huber_delta: float, compiled: bool = True) -> torch.Tensor:
     """Robust cost ``sum_e sum_p conf * rho(|r|)`` (scalar) over valid projections (``compiled``: as
     :func:`linearize_visual`)."""
-    if compiled and poses.device.type == "cpu" and numba_available():
-        from vigs_core.solver import linearize_numba
+    if (kernels := _kernels(compiled, poses)) is not None:
         T_ji = poses[edges.jj] @ se3_inverse(poses[edges.ii])
-        return linearize_numba.edge_cost(T_ji, disps[edges.ii], coords, edges.target, edges.pixel_weight(), intr,
-                                         huber_delta)
+        return kernels.edge_cost(T_ji, disps[edges.ii], coords, edges.target, edges.pixel_weight(), intr, huber_delta)
     r, proj = residuals(poses, disps, edges, coords, intr)
     conf = edges.pixel_weight().mean(-1) * proj.valid
     return (conf * huber_cost(r.norm(dim=-1), huber_delta)).sum()
@@ -132,11 +139,10 @@ def linearize_visual(poses: torch.Tensor, disps: torch.Tensor, edges: EdgeSet, c
     rank = torch.empty_like(group)
     rank[order] = torch.arange(ne, device=ii.device) - starts[group[order]]
     K = 1 + int(counts.max())
-    if compiled and poses.device.type == "cpu" and numba_available():
-        from vigs_core.solver import linearize_numba
+    if (kernels := _kernels(compiled, poses)) is not None:
         T_ji = poses[jj] @ se3_inverse(poses[ii])
         Ad = se3_adjoint(T_ji)
-        Hjj, vj, C, w, block_E, r, valid, cost = linearize_numba.linearize_edges(
+        Hjj, vj, C, w, block_E, r, valid, cost = kernels.linearize_edges(
             T_ji, Ad, disps[ii], coords, edges.target, edges.pixel_weight(), intr, huber_delta, ii, group, rank, n,
             src.shape[0], K)
     else:

@@ -388,9 +388,11 @@ class VisualInertialEstimator:
         if not (c.enabled and c.scale_monitor_every and self.metric and self.scale_checked):
             return None
         self._monitor_wait += 1
+        if self._monitor_wait < c.scale_monitor_every:
+            return None
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         sel = np.nonzero(stamps_ns >= self.metric_since_ns)[0][-c.inertial_init_keyframes:]
-        if self._monitor_wait < c.scale_monitor_every or len(sel) < c.inertial_init_keyframes:
+        if len(sel) < c.inertial_init_keyframes:
             return None
         self._monitor_wait = 0
         res = self._inertial_only(sel, stamps_ns, poses, between)
