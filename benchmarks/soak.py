@@ -111,7 +111,7 @@ def run_vigs_run(bag: Path, out: Path, period_s: float, params: str | None = Non
         buf = ""
         while chunk := proc.stderr.read(256):
             buf = (buf + chunk)[-4000:]
-            found = re.findall(r"kf=(\d+)", buf)
+            found = re.findall(r"kf=(\d+)\D", buf)   # a number cut by the chunk is not complete
             if found:
                 progress["keyframes"] = int(found[-1])
     reader = threading.Thread(target=read, daemon=True)
