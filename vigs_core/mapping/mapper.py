@@ -64,7 +64,9 @@ class MapperConfig:
     Args:
         iterations: optimisation steps per new keyframe (N).
         window: size of the local window of most recent keyframes (including the new one).
-        global_keyframes: random keyframes from outside the window added to each schedule.
+        global_keyframes: random keyframes from outside the window added to each schedule. Over a whole
+            sequence a map optimised mostly on its newest keyframes forgets the older views; a short window and
+            more random keyframes at the same ``iterations`` keep them (docs/benchmarks.md, issue 23).
         render_scale: rendering/optimisation resolution relative to the keyframe images (1: the frontend's processing
             resolution, 376x240 for EuRoC, at which both ``vigs run`` and the mapper node map and evaluate).
         init_stride: pixel stride (at render resolution) when unprojecting depth into Gaussians.
@@ -102,8 +104,8 @@ class MapperConfig:
     """
 
     iterations: int = bounded(10, 0)
-    window: int = bounded(8, 1)
-    global_keyframes: int = bounded(2, 0)
+    window: int = bounded(3, 1)
+    global_keyframes: int = bounded(6, 0)
     render_scale: float = bounded(1.0, 0, 1, lo_open=True)
     init_stride: int = bounded(3, 1)
     init_scale: float = bounded(0.5, 0, lo_open=True)
