@@ -268,6 +268,23 @@ def test_folded_pose_updates_move_the_map_as_the_same_updates_applied_one_by_one
     assert torch.allclose(folded.keyframes[0].depth, one_by_one.keyframes[0].depth)
 
 
+def test_the_default_schedule_keeps_revisiting_keyframes_that_left_the_window():
+    """Over a long run the default schedule (``window``, ``global_keyframes``) still optimises on old keyframes:
+    each of the first 50 of 200 is drawn at least 3 times after it left the local window, and each new keyframe
+    gets at least two of its own steps. (The earlier 8 + 2 schedule drew some of them only once: the whole
+    sequence's older views were forgotten, docs/benchmarks.md, issue 23.)"""
+    mapper = _mapper()
+    c = mapper.config
+    later = [0] * 200
+    for k in range(200):
+        mapper.keyframes[k] = None   # the schedule reads only the ids
+        schedule = mapper._schedule(k)
+        assert len(schedule) == c.iterations and schedule.count(k) >= 2
+        for j in schedule:
+            later[j] += j <= k - c.window
+    assert min(later[:50]) >= 3, later[:50]
+
+
 def test_a_mapper_behind_keeps_up_with_the_newest_keyframes_and_maps_the_rest_when_idle():
     """``max_backlog``: the queue keeps the newest keyframes; older ones are deferred and mapped only when nothing
     else waits, newest first, with the local window around them; a keyframe arriving into a full queue during
