@@ -59,7 +59,8 @@ from vigs_core.spill import SpillConfig, SpillStore
 
 @dataclass
 class MapperConfig:
-    """Settings of :class:`GaussianMapper` (defaults: VIGS-SLAM's schedule, CPU-sized resolution).
+    """Settings of :class:`GaussianMapper` (defaults: VIGS-SLAM's 10 iterations per keyframe, spread more widely
+    over older keyframes than its local window; CPU-sized resolution).
 
     Args:
         iterations: optimisation steps per new keyframe (N).
