@@ -43,3 +43,34 @@ def test_resident_zero_keeps_everything_in_memory(tmp_path):
     for k in range(5):
         store.put(k, *_entry(k))
     assert store.resident_count == 5 and store.writes == 0 and list(tmp_path.iterdir()) == []
+
+
+MOUNTS = """/dev/vda / ext4 rw,relatime 0 0
+tmpfs /tmp tmpfs rw,nosuid,nodev 0 0
+/dev/vdb /tmp/disk ext4 rw 0 0
+ramfs /run/ram ramfs rw 0 0
+"""
+
+
+def test_a_memory_backed_spill_folder_is_recognised_by_its_closest_mount():
+    from pathlib import Path
+
+    from vigs_core.spill import memory_backed
+
+    assert memory_backed(Path("/tmp/vigs-x"), MOUNTS) == "tmpfs"
+    assert memory_backed(Path("/tmp/disk/vigs-x"), MOUNTS) is None      # a disk mounted inside the tmpfs
+    assert memory_backed(Path("/run/ram/a/b"), MOUNTS) == "ramfs"
+    assert memory_backed(Path("/var/cache/vigs"), MOUNTS) is None
+    assert memory_backed(Path("/tmpfoo/x"), MOUNTS) is None               # a prefix of the name is not a parent
+
+
+def test_a_store_that_spills_into_ram_warns_once(tmp_path, monkeypatch):
+    import vigs_core.spill as spill
+
+    monkeypatch.setattr(spill, "memory_backed", lambda path, mounts=None: "tmpfs")
+    store = SpillStore(SpillConfig(resident=1, directory=str(tmp_path)), "test")
+    with pytest.warns(RuntimeWarning, match="on a tmpfs") as caught:
+        for k in range(4):
+            store.put(k, *_entry(k))
+    assert len(caught) == 1
+    store.close()

@@ -5,12 +5,15 @@ mapper's random global keyframes), but rarely: a few keyframes per new one. :cla
 ``resident`` most recently used entries in memory and the rest as ``.npy`` files in a private folder (removed
 when the store is closed or collected), read back on demand. Per keyframe the process then holds only what
 lives outside the store (poses, thumbnails, ids), so resident memory stops growing with the number of keyframes.
+Where the folder is on a memory-backed file system (a tmpfs /tmp, the default on Debian 13 and Fedora), the
+files still take RAM: the store warns once, naming the folder and the ``directory`` setting.
 """
 from __future__ import annotations
 
 import shutil
 import tempfile
 import threading
+import warnings
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -29,7 +32,8 @@ class SpillConfig:
     Args:
         resident: entries kept in memory at most (the most recently used); older ones are written to disk and
             read back when used. 0: everything stays in memory (no files).
-        directory: folder in which the store makes its private spill folder; "" = the system's temporary folder.
+        directory: folder in which the store makes its private spill folder; "" = the system's temporary folder
+            (``TMPDIR`` or /tmp). Give a folder on disk where that is a tmpfs.
     """
 
     resident: int = bounded(64, 0)
@@ -115,4 +119,32 @@ class SpillStore:
         if self._folder is None:
             self._folder = Path(tempfile.mkdtemp(prefix=f"vigs-{self.name}-", dir=self.config.directory or None))
             self._finalizer = weakref.finalize(self, shutil.rmtree, self._folder, True)
+            fs = memory_backed(self._folder)
+            if fs is not None:
+                warnings.warn(f"{self.name}: spilled keyframes go to {self._folder}, on a {fs}, so they still "
+                              f"take RAM; give the store's 'directory' (mapping.mapper.keyframe_store, "
+                              f"loop.images) a folder on disk to bound memory", RuntimeWarning, stacklevel=2)
         return self._folder / f"{key}_{index}.npy"
+
+
+_MEMORY_FILE_SYSTEMS = ("tmpfs", "ramfs")
+
+
+def memory_backed(path: Path, mounts: str | None = None) -> str | None:
+    """The file-system type when ``path`` lies on a memory-backed one (tmpfs, ramfs), else None. ``mounts``:
+    the text of /proc/self/mounts (read when None; None also where it cannot be read)."""
+    if mounts is None:
+        try:
+            mounts = Path("/proc/self/mounts").read_text()
+        except OSError:
+            return None
+    resolved = Path(path).resolve()
+    best, best_type = -1, None
+    for line in mounts.splitlines():
+        fields = line.split()
+        if len(fields) < 3:
+            continue
+        point = Path(fields[1].replace("\\040", " "))
+        if (resolved == point or point in resolved.parents) and len(point.parts) > best:
+            best, best_type = len(point.parts), fields[2]
+    return best_type if best_type in _MEMORY_FILE_SYSTEMS else None
