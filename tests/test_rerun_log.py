@@ -78,9 +78,10 @@ def test_vigs_run_viz_streams_to_a_running_viewer(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     saved = tmp_path / "received.rrd"
+    # SIGINT back to its default in the server: a test run started as a background job inherits it ignored
     server = subprocess.Popen([shutil.which("rerun") or str(Path(sys.executable).parent / "rerun"), "--port",
                                str(port), "--save", str(saved)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                              text=True)
+                              text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:   # until it listens
@@ -94,7 +95,10 @@ def test_vigs_run_viz_streams_to_a_running_viewer(tmp_path):
         assert out.returncode == 0, out.stderr[-2000:]
     finally:
         server.send_signal(signal.SIGINT)
-        server.communicate(timeout=30)
+        try:
+            server.communicate(timeout=30)
+        finally:
+            server.kill()   # no server left behind when it did not stop
     rows, _ = read_rrd(saved)
     assert rows["/world/camera/image"] == 60 + 1 and rows.get("/world/trajectory_final") == 1
 
