@@ -45,11 +45,7 @@ def test_resident_zero_keeps_everything_in_memory(tmp_path):
     assert store.resident_count == 5 and store.writes == 0 and list(tmp_path.iterdir()) == []
 
 
-MOUNTS = """/dev/vda / ext4 rw,relatime 0 0
-tmpfs /tmp tmpfs rw,nosuid,nodev 0 0
-/dev/vdb /tmp/disk ext4 rw 0 0
-ramfs /run/ram ramfs rw 0 0
-"""
+MOUNTS = [("/", "ext4"), ("/tmp", "tmpfs"), ("/tmp/disk", "ext4"), ("/run/ram", "ramfs")]
 
 
 def test_a_memory_backed_spill_folder_is_recognised_by_its_closest_mount():

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Hashable
 
 import numpy as np
+import psutil
 
 from vigs_core.ranges import bounded
 
@@ -130,21 +131,16 @@ class SpillStore:
 _MEMORY_FILE_SYSTEMS = ("tmpfs", "ramfs")
 
 
-def memory_backed(path: Path, mounts: str | None = None) -> str | None:
-    """The file-system type when ``path`` lies on a memory-backed one (tmpfs, ramfs), else None. ``mounts``:
-    the text of /proc/self/mounts (read when None; None also where it cannot be read)."""
+def memory_backed(path: Path, mounts: list[tuple[str, str]] | None = None) -> str | None:
+    """The file-system type when ``path`` lies on a memory-backed one (tmpfs, ramfs), else None: the type of the
+    closest mount point above it. ``mounts``: ``(mount point, type)`` pairs (psutil's list of all mounts when
+    None)."""
     if mounts is None:
-        try:
-            mounts = Path("/proc/self/mounts").read_text()
-        except OSError:
-            return None
+        mounts = [(p.mountpoint, p.fstype) for p in psutil.disk_partitions(all=True)]
     resolved = Path(path).resolve()
-    best, best_type = -1, None
-    for line in mounts.splitlines():
-        fields = line.split()
-        if len(fields) < 3:
-            continue
-        point = Path(fields[1].replace("\\040", " "))
-        if (resolved == point or point in resolved.parents) and len(point.parts) > best:
-            best, best_type = len(point.parts), fields[2]
-    return best_type if best_type in _MEMORY_FILE_SYSTEMS else None
+    depth, found = -1, None
+    for point, fs in mounts:   # in mount order: a later mount on the same point hides the earlier one
+        point = Path(point)
+        if (resolved == point or point in resolved.parents) and len(point.parts) >= depth:
+            depth, found = len(point.parts), fs
+    return found if found in _MEMORY_FILE_SYSTEMS else None

@@ -573,7 +573,7 @@ class DenseOdometry:
         prev_pose = ident
         for f in self.frames:
             if f.keyframe:
-                prev_pose = f.rel @ self.keyframes[f.ref].pose
+                prev_pose = self._current_pose(f)
                 f.odom = prev_pose
             elif f.pending is not None:
                 pose = align_pose(kf0.pose, kf0.disp, self.coords, self.intr, torch.from_numpy(f.pending.target),
