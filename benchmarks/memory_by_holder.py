@@ -6,7 +6,8 @@ Runs the pipeline in this process on BAG (``--params`` as ``vigs run``) and, whe
 each, plus containers and object dictionaries; a part shared by two holders counts for the first) and reads the
 process RSS and glibc's allocated bytes (``mallinfo2``). Prints, per holder, the size at both counts and the
 growth per keyframe; RSS growth beyond the holders' is the allocator's (fragmentation) or unlisted holders'.
-The loop-closure child is a separate process: ``vigs bench soak`` gives its RSS.
+The loop-closure and mapping children are separate processes (``mapping: {process: false}`` in ``--params``
+puts the mapper's holders here): ``vigs bench soak`` gives their RSS.
 
     vigs bench memory_by_holder BAG [--at 1200,3000] [--params FILE]
 """
@@ -82,13 +83,15 @@ def malloc_in_use() -> int | None:
 def holders(odo: Any, mapping: Any) -> dict[str, Any]:
     """The long-lived holders of the main process, in counting order."""
     from vigs_core.loop.driver import LoopClosureDriver
+    from vigs_core.mapping.mapper import GaussianMapper
 
     out = {"odometry frames": odo.frames, "odometry keyframes": odo.keyframes,
            "visual-inertial state": getattr(odo, "vio", None), "frame status": getattr(odo, "frame_status", None)}
     if mapping is not None:
         m = mapping.mapper
-        out |= {"mapper keyframes (+ store)": m.keyframes, "Gaussian map": m.map, "mapper optimiser": m.optimizer,
-                "mapping bookkeeping": mapping}
+        if isinstance(m, GaussianMapper):   # a mapper thread (mapping.process false); else it is the child's
+            out |= {"mapper keyframes (+ store)": m.keyframes, "Gaussian map": m.map, "mapper optimiser": m.optimizer}
+        out["mapping bookkeeping"] = mapping
     drivers = [o for o in gc.get_objects() if isinstance(o, LoopClosureDriver)]
     if drivers:
         out |= {"loop-closure views": drivers[0]._views, "loop-closure caller": drivers[0]}
@@ -115,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             sizes = {name: reachable_bytes(obj, seen) for name, obj in holders(odo, mapping).items()}
             snapshots[frames] = {"keyframes": len(odo.keyframes), "rss": psutil.Process().memory_info().rss,
                                  "malloc": malloc_in_use(),
-                                 "gaussians": len(mapping.mapper.map) if mapping is not None else 0,
+                                 "gaussians": mapping.mapper.summary().gaussians if mapping is not None else 0,
                                  "sizes": sizes}
         return step(self, odo, T_BS, frames, mapping)
 

@@ -5,16 +5,16 @@ The sequence is ``vigs sim --procedural --procedural-duration D`` (procedural mo
 one room, so the scene is revisited), written once as a ROS 2 bag into ``--cache``. Then, each with mapping and
 loop closure on:
 
-* ``vigs run BAG`` (one process plus its loop-closure child);
+* ``vigs run BAG`` (one process plus its loop-closure and mapping children);
 * ``vigs launch --bag BAG --fast`` (the node processes; the replay waits for the frontend).
 
 Every ``--sample-s`` seconds the RSS of the run's processes (by role: the run or its node name, the loop-closure
-worker) and the frontend's keyframe count (from the progress of ``vigs run``; the graph's is not sampled) are
-recorded. Printed per process: peak RSS, RSS at the end of the warm-up (``--warmup-s`` of wall time) and at the
-end (the last two samples, which can catch a process exiting, are left out), the slope after the warm-up (least
-squares, MB per minute of wall time; for ``vigs run`` only while it tracks, before the first sample at the final
-keyframe count, not while the mapper drains or the loop-closure child exits), and for ``vigs run`` the slope per
-keyframe; then the output sizes.
+and mapping workers by their process names) and the frontend's keyframe count (from the progress of ``vigs run``;
+the graph's is not sampled) are recorded. Printed per process: peak RSS, RSS at the end of the warm-up
+(``--warmup-s`` of wall time) and at the end (the last two samples, which can catch a process exiting, are left
+out), the slope after the warm-up (least squares, MB per minute of wall time; for ``vigs run`` only while it
+tracks, before the first sample at the final keyframe count, not while the mapper drains or the loop-closure child
+exits), and for ``vigs run`` the slope per keyframe; then the output sizes.
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph | --no-run]
                     [--params FILE] [--bag BAG] [--json OUT]
@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-ROLES = (("loop-closure", "multiprocessing"), ("imu_preintegration", "imu_preintegration_node"),
+NAMES = {"vigs-loop": "loop-closure", "vigs-mapper": "mapper-process"}   # process names of vigs run's children
+ROLES = (("imu_preintegration", "imu_preintegration_node"),
          ("frontend", "frontend_node"), ("mapper", "mapper_node"), ("loop_detector", "loop_detector_node"),
          ("replay", " replay "))
 
@@ -51,8 +52,8 @@ def render(duration_s: float, cache: Path) -> Path:
     return bag
 
 
-def role(cmdline: str, top: str) -> str:
-    return next((name for name, key in ROLES if key in cmdline), top)
+def role(name: str, cmdline: str, top: str) -> str:
+    return NAMES.get(name) or next((role for role, key in ROLES if key in cmdline), top)
 
 
 def sample(proc: subprocess.Popen, top: str, period_s: float, progress: dict) -> dict[str, list]:
@@ -67,7 +68,7 @@ def sample(proc: subprocess.Popen, top: str, period_s: float, progress: dict) ->
         by_role: dict[str, float] = {}
         for p in [parent, *parent.children(recursive=True)]:
             try:
-                name = top if p.pid == parent.pid else role(" ".join(p.cmdline()), "other")
+                name = top if p.pid == parent.pid else role(p.name(), " ".join(p.cmdline()), "other")
                 by_role[name] = by_role.get(name, 0.0) + p.memory_info().rss / 2**20
             except psutil.Error:
                 pass

@@ -83,6 +83,34 @@ def test_vigs_run_maps_keyframes_and_reports_render_quality(tmp_path):
     assert m["refined"]["psnr"] > m["online"]["psnr"] and m["refined"]["ssim"] > m["online"]["ssim"]
 
 
+def test_a_mapping_process_that_dies_loses_the_map_but_not_the_trajectory_or_the_report(tmp_path, monkeypatch):
+    """The mapper's process killed mid-run: the run goes on to the end, writes its trajectory and report (the
+    error in ``mapping``, no map) and then raises, so that ``vigs run`` exits non-zero."""
+    from vigs_core.mapping.process import MappingProcessError
+
+    params = tmp_path / "p.yaml"
+    params.write_text(f"frontend:\n  ros__parameters:\n    width: {W}\n    height: {H}\n    odometry:\n"
+                      "      init_min_parallax_px: 5.0\n      keyframes:\n        flow_threshold_px: 8.0\n"
+                      "    imu:\n      enabled: false\n    loop:\n      enabled: false\n"
+                      "    mapping:\n      mapper:\n        iterations: 2\n")
+    step = OnlineMapping.step
+
+    def killing_step(self, image):
+        if self._frame_index == 20:
+            self.mapper._process.kill()
+            self.mapper._process.join()
+        step(self, image)
+
+    monkeypatch.setattr(OnlineMapping, "step", killing_step)
+    out = tmp_path / "out"
+    with pytest.raises(MappingProcessError, match="the mapping process ended"):
+        run_pipeline("sim", load_config(params), out, progress=False, sequence=rendered_sequence())
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == N and report["error"].startswith("MappingProcessError")
+    assert report["mapping"] == {"error": "the mapping process ended (exit code -9)"}
+    assert len(np.loadtxt(out / "trajectory.txt", ndmin=2)) == N and not (out / "map.ply").exists()
+
+
 def test_mapping_can_be_disabled_and_config_is_validated():
     cfg = PipelineConfig()
     assert cfg.mapping.enabled                       # on by default for vigs run
@@ -133,17 +161,19 @@ class _FakeOdometry:
         self.graph = FrameGraph(FrameGraphConfig(window=4))
 
 
-def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch():
+@pytest.mark.parametrize("process", [True, False], ids=["mapper process", "mapper thread"])
+def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch(process):
     odo = _FakeOdometry()
     with pytest.raises(ValueError, match="keyframe_delay .4. must be below the frontend's window .4."):
         OnlineMapping(MappingConfig(keyframe_delay=4), odo, CAM)   # its image would be gone by then
-    online = OnlineMapping(MappingConfig(keyframe_delay=1, mapper=MapperConfig(iterations=2)), odo, CAM)
+    online = OnlineMapping(MappingConfig(keyframe_delay=1, mapper=MapperConfig(iterations=2), process=process),
+                           odo, CAM)
     z = online._depth(0, odo.keyframes[0].disp)
     assert z.shape == (4, 6) and z[0, 0] == 0 and z[0, 1] == 0 and z[0, 2] == 0 and z[0, 3] == pytest.approx(2.0)
     online.step(odo.keyframes[1].image)
     assert sorted(online._sent) == [0]               # keyframe 1 waits for a newer one
     online.mapper.wait_idle()
-    means = online.mapper.map.means.clone()
+    means = online.mapper.snapshot().means
     # a world rescale by s = 3 (as the visual-inertial alignment does): positions x3, disparities /3
     s = 3.0
     for kf in odo.keyframes.values():
@@ -154,7 +184,7 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch():
     assert online.pose_update_batches == 1
     online.mapper.wait_idle()
     # keyframe 0 sits at the origin: its anchored Gaussians scale about the camera centre by s
-    torch.testing.assert_close(online.mapper.map.means, means * s, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(online.mapper.snapshot().means, means * s, rtol=1e-4, atol=1e-5)
     online.step(odo.keyframes[1].image)               # nothing changed: no further batch
     assert online.pose_update_batches == 1
     # a loop correction reaches the mapper through the loop driver; on_correction records it as sent
@@ -165,7 +195,8 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch():
     online.step(odo.keyframes[1].image)
     assert online.pose_update_batches == 1
     online.finish()
-    assert sorted(online._sent) == [0, 1] and online.mapper.stats.keyframes == 2
+    assert sorted(online._sent) == [0, 1] and online.mapper.summary().stats.keyframes == 2
+    online.close()
 
 
 def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
@@ -174,7 +205,7 @@ def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
     from types import SimpleNamespace
 
     odo = SimpleNamespace(keyframes={}, graph=FrameGraph())
-    online = OnlineMapping(MappingConfig(eval_stride=2, eval_max_frames=20), odo, CAM)
+    online = OnlineMapping(MappingConfig(eval_stride=2, eval_max_frames=20, process=False), odo, CAM)
     try:
         image = np.zeros((H, W), np.uint8)
         for _ in range(30):
@@ -186,4 +217,4 @@ def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
         assert len(kept) == 20 and all(k % 2 == 0 for k in kept)
         assert kept[0] < 1000 and kept[-1] > 3000   # spread over the run, not its first or last frames
     finally:
-        online.mapper.stop()
+        online.close()

@@ -2,6 +2,7 @@
 ``vigs run`` on an EuRoC ASL folder."""
 import json
 import math
+import os
 import re
 import signal
 import subprocess
@@ -267,10 +268,12 @@ def test_load_frames_reads_a_whole_input_at_the_processing_size(sequence, tmp_pa
     assert (f.camera.width, f.camera.height) == (W // 2, H // 2)
 
 
-def run_until_frame(cmd: list[str], frames: int) -> tuple[subprocess.Popen, str]:
-    """``cmd`` (a ``vigs run`` with its progress bar on the sample's 441 frames) started and read until the bar
-    passed ``frames`` frames; the process and its stderr so far."""
-    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+def run_until_frame(cmd: list[str], frames: int, own_group: bool = False) -> tuple[subprocess.Popen, str]:
+    """``cmd`` (a ``vigs run`` with its progress bar on the sample's 441 frames) started (``own_group``: as the
+    leader of a new process group, as a shell's job) and read until the bar passed ``frames`` frames; the process
+    and its stderr so far."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            process_group=0 if own_group else None)
     seen = ""
     while not any(int(n) >= frames for n in re.findall(r"\b(\d+)/441", seen)):
         chunk = proc.stderr.read(64)
@@ -279,11 +282,14 @@ def run_until_frame(cmd: list[str], frames: int) -> tuple[subprocess.Popen, str]
     return proc, seen
 
 
-@pytest.mark.parametrize("signum, mapping", [(signal.SIGINT, True), (signal.SIGTERM, False)])
-def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum, mapping):
-    """Ctrl-C or SIGTERM mid-run (loop closure in its child process): the run stops at a frame boundary, writes
-    trajectory, report (marked interrupted) and, with mapping, the map of every keyframe (the mapper's backlog
-    inserted without refinement), and exits 128 + the signal; its loop-closure child is gone."""
+@pytest.mark.parametrize("signum, mapping, group", [(signal.SIGINT, True, False), (signal.SIGTERM, False, False),
+                                                    (signal.SIGINT, True, True), (signal.SIGTERM, True, True)],
+                         ids=["SIGINT mapping", "SIGTERM", "SIGINT to the group mapping", "SIGTERM to the group mapping"])
+def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum, mapping, group):
+    """Ctrl-C or SIGTERM mid-run (loop closure and mapping in child processes), to the run or to its whole process
+    group (Ctrl-C in a terminal, ``kill -- -PGID``): the run stops at a frame boundary, writes trajectory, report
+    (marked interrupted) and, with mapping, the map of every keyframe (the mapper's backlog inserted without
+    refinement), and exits 128 + the signal; its children are gone."""
     import psutil
 
     from ros_bags import SAMPLE_BAG
@@ -293,9 +299,12 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
            "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
     (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n"
                                      f"    mapping: {{enabled: {str(mapping).lower()}}}\n")
-    proc, seen = run_until_frame(cmd, 100)
+    proc, seen = run_until_frame(cmd, 100, own_group=group)
     children = psutil.Process(proc.pid).children(recursive=True)
-    proc.send_signal(signum)
+    if group:
+        os.killpg(proc.pid, signum)
+    else:
+        proc.send_signal(signum)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signum, seen[-1000:] + err[-3000:]
     report = json.loads((tmp_path / "report.json").read_text())

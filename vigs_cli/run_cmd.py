@@ -30,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vigs_core.mapping.process import MappingProcessError
     from vigs_core.system import apply_overrides, load_config, run_pipeline
 
     try:
@@ -62,6 +63,9 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as err:
         print(f"vigs run: {err}", file=sys.stderr)
         return 2
+    except MappingProcessError as err:   # printed in full above; the other outputs were written
+        print(f"vigs run: {str(err).splitlines()[0]} (the other outputs are in {args.out})", file=sys.stderr)
+        return 1
     summary = {k: report[k] for k in ("frames", "frames_posed", "keyframes", "frames_per_s", "peak_rss_mb")}
     acc = report.get("accuracy", {})
     summary.update({k: acc[k] for k in ("ate_rmse", "recall@0.1", "scale") if k in acc})

@@ -135,15 +135,18 @@ class LoopClosureDriver:
         return result
 
     def finish(self) -> None:
-        """At the end of a run: wait for detection, run the last PGBA if loops are pending, apply everything."""
-        while True:
-            result = self.closure.wait()
-            if result is not None:
-                self.apply(result)
-            if not self.closure.pending:
-                break
-            self._start_pgba()
-        self.closure.close()
+        """At the end of a run: wait for detection, run the last PGBA if loops are pending, apply everything
+        (the worker is closed also when this raises its error)."""
+        try:
+            while True:
+                result = self.closure.wait()
+                if result is not None:
+                    self.apply(result)
+                if not self.closure.pending:
+                    break
+                self._start_pgba()
+        finally:
+            self.closure.close()
 
     def _start_pgba(self) -> None:
         T_WC = se3_inverse(torch.stack([self.odometry.keyframes[k].pose for k in self._registered]).to(F64))

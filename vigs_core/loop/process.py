@@ -33,6 +33,10 @@ The child answers every message with ``("state", loops_found, loops_covered)`` (
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
 job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while
 ``loops_found > loops_covered``.
+
+The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal or a SIGTERM to the group
+reach only the parent, which finishes the run with loop closure still there (a group SIGTERM had ended the child
+and the run with it, outputs unwritten). It ends on SIGTERM to itself or when the pipe closes.
 """
 from __future__ import annotations
 
@@ -40,6 +44,7 @@ import multiprocessing as mp
 import os
 import pickle
 import queue
+import signal
 import threading
 import traceback
 from dataclasses import replace
@@ -55,6 +60,7 @@ from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig
 from vigs_core.loop.detection import KeyframeView
 from vigs_core.loop.pgba import PGBAResult
+from vigs_core.process_name import set_process_name
 from vigs_core.solver import Intrinsics
 
 
@@ -70,6 +76,9 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
     """The child process: an inline :class:`LoopClosure` driven by the parent's messages (module docstring)."""
     import cv2
 
+    os.setpgid(0, 0)   # signals to the parent's group (Ctrl-C, kill -- -PGID) are the parent's to handle
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    set_process_name("vigs-loop")
     if config.process_nice:
         os.nice(config.process_nice)
     map_large_blocks()   # image-sized temporaries must not fragment the heap over a long run

@@ -14,7 +14,7 @@ Layers, top to bottom:
 from vigs_core.mapping.anchor import anchored_update
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.init import gaussians_from_depth
-from vigs_core.mapping.mapper import GaussianMapper, Keyframe, MapDelta, MapperConfig, MapperStats
+from vigs_core.mapping.mapper import GaussianMapper, Keyframe, MapDelta, MapperConfig, MapperStats, MapperSummary
 from vigs_core.mapping.metrics import psnr, ssim
 from vigs_core.mapping.optimizer import RowAdam
 from vigs_core.mapping.ply import load_map, load_ply, save_map, save_ply
@@ -34,6 +34,7 @@ __all__ = [
     "MapDelta",
     "MapperConfig",
     "MapperStats",
+    "MapperSummary",
     "RenderCamera",
     "RenderOutput",
     "RenderSettings",

@@ -36,7 +36,7 @@ import math
 import random
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -194,6 +194,18 @@ class MapperStats:
     pruned: int = 0
     pose_updates: int = 0
     ignored_pose_ids: list[int] = field(default_factory=list)
+
+
+@dataclass
+class MapperSummary:
+    """What a run reports of its mapper (:meth:`GaussianMapper.summary`, also across a process boundary):
+    counters, Gaussians, the render size ``(w, h)`` and the keyframe store's entries on disk and reads back."""
+
+    stats: MapperStats
+    gaussians: int
+    render_size: tuple[int, int]
+    keyframes_on_disk: int
+    keyframe_disk_reads: int
 
 
 def _prepare_image(image, size: tuple[int, int]) -> torch.Tensor:
@@ -362,7 +374,19 @@ class GaussianMapper:
             self._worker.join()
             self._worker = None
 
+    def close(self) -> None:
+        """Stop the worker and remove the keyframe store's spill folder (the map stays readable)."""
+        self.stop()
+        self.pixel_store.close()
+
     # ------------------------------------------------------------------ public API: reading
+    def summary(self) -> MapperSummary:
+        """Counters and sizes for a report (a copy: the worker keeps counting)."""
+        with self._reading():
+            return MapperSummary(replace(self.stats, ignored_pose_ids=list(self.stats.ignored_pose_ids)),
+                                 len(self.map), (self.render_camera.width, self.render_camera.height),
+                                 len(self.pixel_store) - self.pixel_store.resident_count, self.pixel_store.reads)
+
     @torch.no_grad()
     def render(self, T_WC, scale: float | None = None) -> RenderOutput:
         """Render the map from ``T_WC`` (4, 4) at ``scale`` x the camera (default: the render scale).

@@ -1,6 +1,7 @@
 """The Gaussian mapper inside ``vigs run``: feeds the odometry's keyframes to a
-:class:`~vigs_core.mapping.GaussianMapper` running on its own thread, keeps the map on the odometry's keyframe
-poses, and measures render quality at the end (VIGS-SLAM Sec. 3.3).
+:class:`~vigs_core.mapping.GaussianMapper` running in a child process (:mod:`vigs_core.mapping.process`; or on
+a thread of this one), keeps the map on the odometry's keyframe poses, and measures render quality at the end
+(VIGS-SLAM Sec. 3.3).
 
 Per processed frame (:meth:`OnlineMapping.step`, tracking thread, only queue operations on the mapper):
 
@@ -35,6 +36,7 @@ import torch
 
 from vigs_core.geometry import se3_inverse, se3_log
 from vigs_core.mapping import GaussianMapper, MapperConfig
+from vigs_core.mapping.process import MapperProcess
 from vigs_core.ranges import bounded
 
 F64 = torch.float64
@@ -46,10 +48,12 @@ class MappingConfig:
 
     Args:
         enabled: run the Gaussian mapper (its CPU cost per keyframe and per evaluated frame: docs/benchmarks.md,
-            issue 23). The mapper is a worker thread, so tracking never waits for it but shares the CPU with it
-            (the compiled rasterizer kernels release the interpreter lock); the run waits for the mapper's backlog
-            at the end.
+            issue 23). Tracking never waits for it but shares the CPU with it; the run waits for the mapper's
+            backlog at the end.
         mapper: the mapper's settings (:class:`vigs_core.mapping.MapperConfig`).
+        process: the mapper runs in a child process (:class:`vigs_core.mapping.process.MapperProcess`: it takes
+            neither tracking's interpreter lock nor its heap); False: a worker thread of this process.
+        process_nice: niceness increment of that child process: on a saturated CPU tracking keeps its core.
         keyframe_delay: a keyframe is mapped once this many newer keyframes exist (its depth refined by BA);
             below the frontend's window (its image is dropped when it leaves the window).
         min_confidence: grid cells whose best outgoing-edge flow confidence is below this get no depth, [0, 1].
@@ -67,6 +71,8 @@ class MappingConfig:
 
     enabled: bool = True
     mapper: MapperConfig = field(default_factory=MapperConfig)
+    process: bool = True
+    process_nice: int = bounded(10, 0, 19)
     keyframe_delay: int = bounded(1, 0)
     min_confidence: float = bounded(0.1, 0, 1)
     max_depth_ratio: float = bounded(5.0, 0)
@@ -107,7 +113,12 @@ class OnlineMapping:
                              f"window ({window}): a keyframe is mapped while its image is still kept")
         self.config = config
         self.odometry = odometry
-        self.mapper = GaussianMapper(config.mapper, camera, device)
+        if config.process:
+            self.mapper: GaussianMapper | MapperProcess = MapperProcess(config.mapper, camera, device,
+                                                                        config.process_nice)
+        else:
+            self.mapper = GaussianMapper(config.mapper, camera, device)
+            self.mapper.run_async()
         self._sent: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> (T_WC, disp) as last sent
         self._seen: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> the frontend's pose, disp then
         self._eval_images: dict[int, np.ndarray] = {}                   # frame index -> processed image
@@ -116,7 +127,6 @@ class OnlineMapping:
         self._frame_index = 0
         self.pose_update_batches = 0
         self.wait_seconds = 0.0
-        self.mapper.run_async()
 
     # ------------------------------------------------------------------ tracking thread
     def step(self, image: np.ndarray) -> None:
@@ -177,18 +187,19 @@ class OnlineMapping:
             frame = self.odometry.frames[idx]
             if not frame.keyframe and frame.t_ns in pose_at:
                 views.append((pose_at[frame.t_ns], image))
-        stats = self.mapper.stats
+        summary = self.mapper.summary()
+        stats = summary.stats
         out = {
-            "gaussians": len(self.mapper.map),
+            "gaussians": summary.gaussians,
             "keyframes_mapped": stats.keyframes,
             "mapping_s": round(stats.mapping_seconds, 3),
             "keyframes_per_s": round(stats.keyframes / stats.mapping_seconds, 3) if stats.mapping_seconds else None,
             "wait_at_end_s": round(self.wait_seconds, 3),
             "pose_update_batches": self.pose_update_batches,
             "gaussians_added": stats.added, "gaussians_pruned": stats.pruned,
-            "render_size": [self.mapper.render_camera.width, self.mapper.render_camera.height],
-            "keyframes_on_disk": len(self.mapper.pixel_store) - self.mapper.pixel_store.resident_count,
-            "keyframe_disk_reads": self.mapper.pixel_store.reads,
+            "render_size": list(summary.render_size),
+            "keyframes_on_disk": summary.keyframes_on_disk,
+            "keyframe_disk_reads": summary.keyframe_disk_reads,
         }
         t0 = time.perf_counter()
         out["online"] = _rounded(self.mapper.evaluate(views))
@@ -204,6 +215,10 @@ class OnlineMapping:
     def save(self, path: str | Path) -> Path:
         """Write the map (3DGS PLY at ``path``) and its keyframe sidecar; returns the sidecar path."""
         return self.mapper.save(path)
+
+    def close(self) -> None:
+        """Stop the mapper and free its keyframe store (and its process); the run's map is saved before."""
+        self.mapper.close()
 
     # ------------------------------------------------------------------ internals
     def _current(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -31,9 +31,10 @@ adds ``vio`` (stage, scale history, biases, keyframe states) and ``accuracy_se3`
 With ``loop.enabled`` loop closure (:class:`vigs_core.loop.LoopClosureDriver`: detection and Sim(3) PGBA in a
 worker process) corrects the keyframes as it goes; report.json adds ``loop`` (candidates, loops found and
 rejected, PGBA runs and seconds). With ``mapping.enabled`` the Gaussian mapper
-(:class:`vigs_core.system.mapping.OnlineMapping`) maps the keyframes on a worker thread: ``map.ply`` (3DGS
+(:class:`vigs_core.system.mapping.OnlineMapping`) maps the keyframes in a worker process: ``map.ply`` (3DGS
 layout) and ``map.json`` (keyframes) are written and report.json adds ``mapping`` (Gaussians, keyframes mapped,
 seconds, PSNR/SSIM on non-keyframe frames at the final poses, before and after the optional final refinement).
+If that process fails, the rest is still written and ``mapping`` holds the error.
 
 While the run goes on, the pose outputs and a partial ``report.json`` (``partial: true``) are rewritten every
 ``checkpoint_period_s`` and ``map.ply`` every ``map_checkpoint_period_s`` (:class:`Checkpoints`; every file is
@@ -65,6 +66,7 @@ from vigs_core.camera import CameraModel
 from vigs_core.geometry import interpolate_poses, matrix_to_quat
 from vigs_core.imu.samples import ordered_samples
 from vigs_core.loop import LoopClosureDriver
+from vigs_core.mapping.process import MappingProcessError
 from vigs_core.system.config import PipelineConfig
 from vigs_core.system.mapping import OnlineMapping
 from vigs_core.system.prefetch import FramePrefetcher
@@ -488,7 +490,11 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         why = stop.requested or f"{type(failure).__name__}: {failure}"
         print(f"vigs run: stopped after {n} frames ({why}): writing what was computed", file=sys.stderr)
     if loop is not None:
-        loop.finish()
+        try:
+            loop.finish()
+        except RuntimeError as err:   # its worker failed: the outputs are still written, then the error raised
+            print(f"vigs run: {err}", file=sys.stderr)
+            failure = failure or err
     loop_s = time.perf_counter() - t_loop
     poses = pose_outputs(odo, seq.T_BS)   # scored below, then written
     (t_ns, T_WB), (_, T_WC), (to, T_WB_odo) = poses["trajectory"], poses["trajectory_cam"], poses["odometry"]
@@ -509,10 +515,21 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         report["loop"] = loop.report()
     cut_short = stop.requested is not None or failure is not None
     if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
-        mapping.finish(drain=not cut_short)
-        report["mapping"] = mapping.evaluate(t_ns, T_WC) if not cut_short else {
-            "gaussians": len(mapping.mapper.map), "keyframes_mapped": mapping.mapper.stats.keyframes,
-            "interrupted": True}
+        try:
+            mapping.finish(drain=not cut_short)
+            if cut_short:
+                summary = mapping.mapper.summary()
+                report["mapping"] = {"gaussians": summary.gaussians, "keyframes_mapped": summary.stats.keyframes,
+                                     "interrupted": True}
+            else:
+                report["mapping"] = mapping.evaluate(t_ns, T_WC)
+        except MappingProcessError as err:   # the trajectory and the report are still written, then it is raised
+            print(f"vigs run: {err}\nvigs run: no map is written", file=sys.stderr)
+            report["mapping"] = {"error": str(err).splitlines()[0]}
+            report["error"] = report["error"] or f"{type(err).__name__}: {report['mapping']['error']}"
+            failure = failure or err
+            mapping.close()
+            mapping = None
     metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
     frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
     if seq.groundtruth is not None and len(t_ns):
@@ -544,6 +561,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             mapping.save(out / "map.ply")
         _replace_atomically(out / "report.json", lambda path: path.write_text(json.dumps(report, indent=2)))
         _write_html_report(out, seq, frame_t, metric)
+    if mapping is not None:
+        mapping.close()
     if failure is not None:
         raise failure
     return report
