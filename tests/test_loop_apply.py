@@ -143,8 +143,8 @@ def test_worker_process_hands_its_errors_to_the_caller():
 
 def test_a_dead_worker_process_is_reported():
     closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
-    closure._process.kill()
-    closure._process.join()
+    closure._channel.process.kill()
+    closure._channel.process.join()
     with pytest.raises(RuntimeError, match="loop-closure process ended"):
         closure.wait()
 

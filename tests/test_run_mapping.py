@@ -97,8 +97,8 @@ def test_a_mapping_process_that_dies_loses_the_map_but_not_the_trajectory_or_the
 
     def killing_step(self, image):
         if self._frame_index == 20:
-            self.mapper._process.kill()
-            self.mapper._process.join()
+            self.mapper.channel.process.kill()
+            self.mapper.channel.process.join()
         step(self, image)
 
     monkeypatch.setattr(OnlineMapping, "step", killing_step)

@@ -20,32 +20,18 @@ Protocol (one duplex pipe, messages handled in order by the child, an ``inline``
   information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
 * ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
 
-The parent never blocks on the pipe: its messages are pickled on the caller's thread and written by a sender
-thread, so the child can always answer (a 7 MB batch of views after a loop correction and the child's
-answers filled the two pipe buffers at once and deadlocked both sides when the caller wrote them itself).
-Messages are pickled with the standard pickler (``send_bytes``): multiprocessing's own would hand every torch
-tensor over in shared memory, one segment per tensor. Tensors travel as NumPy arrays
-(:func:`vigs_core.arrays.host`): NumPy pickles only the elements of a view of a larger batch (keyframe views,
-PGBA corrections), not its whole storage, and about 20 times faster than torch pickles a tensor (8 s of the
-main thread on hybrid MH_03 before).
+The pipe, its sender thread (the caller never blocks on writing) and the signal handling are
+:mod:`vigs_core.child_process`'s. Tensors travel as NumPy arrays (:func:`vigs_core.arrays.host`): NumPy pickles
+only the elements of a view of a larger batch (keyframe views, PGBA corrections), not its whole storage, and
+about 20 times faster than torch pickles a tensor (8 s of the main thread on hybrid MH_03 before).
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
 job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while
 ``loops_found > loops_covered``.
-
-The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal or a SIGTERM to the group
-reach only the parent, which finishes the run with loop closure still there (a group SIGTERM had ended the child
-and the run with it, outputs unwritten). It ends on SIGTERM to itself or when the pipe closes.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
-import pickle
-import queue
-import signal
-import threading
 import traceback
 from dataclasses import replace
 from typing import Any, Sequence
@@ -53,6 +39,7 @@ from typing import Any, Sequence
 import torch
 
 from vigs_core.arrays import host
+from vigs_core.child_process import ChildChannel, enter_child, messages, receive, send
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.heap import map_large_blocks
@@ -60,30 +47,13 @@ from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig
 from vigs_core.loop.detection import KeyframeView
 from vigs_core.loop.pgba import PGBAResult
-from vigs_core.process_name import set_process_name
 from vigs_core.solver import Intrinsics
-
-
-def _send(conn: Any, msg: tuple) -> None:
-    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def _recv(conn: Any) -> tuple:
-    return pickle.loads(conn.recv_bytes())
 
 
 def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, intr: Intrinsics) -> None:
     """The child process: an inline :class:`LoopClosure` driven by the parent's messages (module docstring)."""
-    import cv2
-
-    os.setpgid(0, 0)   # signals to the parent's group (Ctrl-C, kill -- -PGID) are the parent's to handle
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    set_process_name("vigs-loop")
-    if config.process_nice:
-        os.nice(config.process_nice)
+    enter_child("vigs-loop", config.process_nice)
     map_large_blocks()   # image-sized temporaries must not fragment the heap over a long run
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
     closure = LoopClosure(replace(config, asynchronous=False), DISFlowEstimator(grid, flow), intr)
     try:
         _serve(conn, closure)
@@ -94,11 +64,7 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
 def _serve(conn: Any, closure: LoopClosure) -> None:
     views: dict[int, KeyframeView] = {}   # without images once detected: the detector keeps those
     covered = 0
-    while True:
-        try:
-            msg = _recv(conn)
-        except EOFError:   # the parent went away
-            return
+    for msg in messages(conn):
         kind = msg[0]
         try:
             if kind == "views":
@@ -111,19 +77,19 @@ def _serve(conn: Any, closure: LoopClosure) -> None:
                 views[k] = replace(views[k], image=None)
             elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
                                                            msg[2]):
-                _send(conn, ("result", None))
+                send(conn, ("result", None))
             elif kind == "applied":
                 closure.record_applied(msg[1])
             result = closure.poll()   # re-raises a job's error
             if result is not None:
                 covered = result.loops
-                _send(conn, ("result", replace(result, corrections={k: host(C) for k, C in
+                send(conn, ("result", replace(result, corrections={k: host(C) for k, C in
                                                                     result.corrections.items()})))
         except Exception:   # noqa: BLE001 - handed to the parent, which raises it from poll()
-            _send(conn, ("error", traceback.format_exc()))
-        _send(conn, ("state", closure.stats.loops_found, covered))
+            send(conn, ("error", traceback.format_exc()))
+        send(conn, ("state", closure.stats.loops_found, covered))
         if kind in ("sync", "close"):
-            _send(conn, ("synced" if kind == "sync" else "closed", closure.stats))
+            send(conn, ("synced" if kind == "sync" else "closed", closure.stats))
         if kind == "close":
             return
 
@@ -141,15 +107,7 @@ class LoopClosureProcess:
         self.config = config
         self.stats = LoopStats()
         self.units: dict[int, float] = {}
-        ctx = mp.get_context("spawn")   # no fork of a process that runs threads
-        self._conn, child_conn = ctx.Pipe()
-        self._process = ctx.Process(target=_child, args=(child_conn, config, grid, flow, intrinsics),
-                                    name="vigs-loop-closure", daemon=True)
-        self._process.start()
-        child_conn.close()
-        self._outbox: queue.Queue = queue.Queue()
-        self._sender = threading.Thread(target=self._write, name="loop-closure-sender", daemon=True)
-        self._sender.start()
+        self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure")
         self._sent: dict[int, tuple[KeyframeView, torch.Tensor]] = {}   # id -> view, disparities as last sent
         self._found = 0
         self._covered = 0
@@ -159,14 +117,7 @@ class LoopClosureProcess:
 
     # ------------------------------------------------------------------ messages to and from the child
     def _post(self, msg: tuple) -> None:
-        self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
-
-    def _write(self) -> None:
-        while (data := self._outbox.get()) is not None:
-            try:
-                self._conn.send_bytes(data)
-            except OSError:   # the child is gone; poll() reports its error if it sent one
-                return
+        self._channel.post(msg)
 
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
@@ -184,13 +135,13 @@ class LoopClosureProcess:
 
     def _receive(self) -> tuple:
         try:
-            return _recv(self._conn)
+            return receive(self._channel.conn)
         except (EOFError, OSError) as err:
-            self._process.join(timeout=1)
-            raise RuntimeError(f"the loop-closure process ended (exit code {self._process.exitcode})") from err
+            self._channel.process.join(timeout=1)
+            raise RuntimeError(f"the loop-closure process ended (exit code {self._channel.process.exitcode})") from err
 
     def _drain(self) -> None:
-        while self._conn.poll(0):
+        while self._channel.conn.poll(0):
             self._handle(self._receive())
 
     def _await(self, kind: str) -> None:
@@ -259,10 +210,9 @@ class LoopClosureProcess:
 
     def close(self) -> None:
         """Let the child finish its queue and exit."""
-        if self._process.is_alive():
-            self._post(("close",))
-            self._await("closed")
-        self._outbox.put(None)
-        self._sender.join()
-        self._process.join(timeout=10)
-        self._conn.close()
+        try:
+            if self._channel.process.is_alive():
+                self._post(("close",))
+                self._await("closed")
+        finally:
+            self._channel.close()

@@ -16,24 +16,12 @@ Protocol (one duplex pipe, messages handled in order by the child):
 * ``("call", name, args)``: one of :data:`_CALLS` on the child's mapper, answered ``("return", value)`` or
   ``("error", text)``. ``close`` stops the worker, removes the keyframe store's folder and ends the child.
 
-The parent never blocks on writing: messages are pickled on the caller's thread and written by a sender thread
-(as :mod:`vigs_core.loop.process`). Only the caller's thread reads, and only the answer to its own call, so the
-child never writes unasked. Tensors travel as NumPy arrays.
-
-Signals: the parent, not a signal, decides when the mapper drains and saves. The child leaves the parent's
-process group, so Ctrl-C in a terminal and a SIGTERM to the group (``kill -- -PGID``, ``timeout``) reach only
-the parent, which then drains and saves the map through the pipe; it also ignores SIGINT. A SIGTERM sent to the
-child itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and so does the
-pipe closing (the parent died).
+The pipe, its sender thread and the signal handling are :mod:`vigs_core.child_process`'s. Only the caller's
+thread reads, and only the answer to its own call, so the child never writes unasked. Tensors travel as NumPy
+arrays.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
-import pickle
-import queue
-import signal
-import threading
 import traceback
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -41,9 +29,9 @@ from typing import Any, Callable, Iterable
 import torch
 
 from vigs_core.arrays import host
+from vigs_core.child_process import ChildChannel, enter_child, messages, receive, send
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.mapper import GaussianMapper, MapperConfig, MapperSummary
-from vigs_core.process_name import set_process_name
 
 
 class MappingProcessError(RuntimeError):
@@ -65,15 +53,7 @@ _CALLS: dict[str, Callable[..., Any]] = {
 
 def _child(conn: Any, config: MapperConfig, camera: Any, device: str, nice: int) -> None:
     """The child process: a :class:`GaussianMapper` on its worker thread, driven by the parent's messages."""
-    import cv2
-
-    os.setpgid(0, 0)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    set_process_name("vigs-mapper")
-    if nice:
-        os.nice(nice)
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
+    enter_child("vigs-mapper", nice)
     mapper = GaussianMapper(config, camera, device)
     mapper.run_async()
     try:
@@ -84,11 +64,7 @@ def _child(conn: Any, config: MapperConfig, camera: Any, device: str, nice: int)
 
 def _serve(conn: Any, mapper: GaussianMapper) -> None:
     error: str | None = None   # of a queued message, raised by the next call
-    while True:
-        try:
-            msg = pickle.loads(conn.recv_bytes())
-        except EOFError:   # the parent went away
-            return
+    for msg in messages(conn):
         kind = msg[0]
         try:
             if kind == "keyframe":
@@ -108,7 +84,7 @@ def _serve(conn: Any, mapper: GaussianMapper) -> None:
                 answer = ("return", _to_host(value))
         except Exception:   # noqa: BLE001 - raised in the parent by the call
             answer = ("error", traceback.format_exc())
-        conn.send_bytes(pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL))
+        send(conn, answer)
         if name == "close":
             return
 
@@ -128,19 +104,14 @@ class MapperProcess:
         camera: undistorted pinhole camera of the keyframe images (picklable).
         device: torch device of the child's map.
         nice: niceness increment of the child process.
+
+    Attributes:
+        channel: the child process and its pipe (:class:`~vigs_core.child_process.ChildChannel`).
     """
 
     def __init__(self, config: MapperConfig, camera: Any, device: torch.device | str = "cpu", nice: int = 0) -> None:
         self.config = config
-        ctx = mp.get_context("spawn")   # no fork of a process that runs threads
-        self._conn, child_conn = ctx.Pipe()
-        self._process = ctx.Process(target=_child, args=(child_conn, config, camera, str(device), nice),
-                                    name="vigs-mapper", daemon=True)
-        self._process.start()
-        child_conn.close()
-        self._outbox: queue.Queue = queue.Queue()
-        self._sender = threading.Thread(target=self._write, name="mapper-sender", daemon=True)
-        self._sender.start()
+        self.channel = ChildChannel(_child, (config, camera, str(device), nice), "vigs-mapper")
         self._closed = False
 
     # ------------------------------------------------------------------ feeding (no answer)
@@ -185,36 +156,25 @@ class MapperProcess:
             return
         self._closed = True
         try:
-            if self._process.is_alive():
+            if self.channel.process.is_alive():
                 self._call("close")
         finally:
-            self._outbox.put(None)
-            self._sender.join()
-            self._process.join(timeout=10)
-            if self._process.is_alive():
-                self._process.terminate()
-            self._conn.close()
+            self.channel.close()
 
     # ------------------------------------------------------------------ the pipe
     def _post(self, msg: tuple) -> None:
         if self._closed:
             raise MappingProcessError("the mapping process was closed")
-        self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
-
-    def _write(self) -> None:
-        while (data := self._outbox.get()) is not None:
-            try:
-                self._conn.send_bytes(data)
-            except OSError:   # the child is gone; the next call says so
-                return
+        self.channel.post(msg)
 
     def _call(self, name: str, *args: Any) -> Any:
-        self._outbox.put(pickle.dumps(("call", name, args), protocol=pickle.HIGHEST_PROTOCOL))
+        self.channel.post(("call", name, args))
         try:
-            kind, value = pickle.loads(self._conn.recv_bytes())
+            kind, value = receive(self.channel.conn)
         except (EOFError, OSError) as err:
-            self._process.join(timeout=1)
-            raise MappingProcessError(f"the mapping process ended (exit code {self._process.exitcode})") from err
+            self.channel.process.join(timeout=1)
+            raise MappingProcessError(
+                f"the mapping process ended (exit code {self.channel.process.exitcode})") from err
         if kind == "error":
             raise MappingProcessError(f"mapping failed in its process:\n{value}")
         return value

@@ -1,0 +1,115 @@
+"""A worker in a spawned child process, as ``vigs run`` runs loop closure and mapping: the caller's side
+(:class:`ChildChannel`: the process, a duplex pipe to it and a sender thread) and the child's first step
+(:func:`enter_child`).
+
+The caller never blocks on writing: messages are pickled on the caller's thread (the standard pickler,
+``send_bytes``: multiprocessing's own would hand every torch tensor over in shared memory, one segment per
+tensor) and written by the sender thread, so the child can always answer; a 7 MB batch of keyframe views and the
+child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself.
+
+The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal and a SIGTERM to the group
+(``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its workers still there (a
+group SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). A SIGTERM to the child
+itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and so does the pipe
+closing (the parent died). Its process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench soak`` which
+worker it is: spawned children all run the same command line.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import multiprocessing as mp
+import os
+import pickle
+import queue
+import signal
+import threading
+from typing import Any, Callable, Iterator
+
+_PR_SET_NAME = 15   # prctl(2)
+
+
+def enter_child(name: str, nice: int = 0) -> None:
+    """First step of a worker child: its own process group, SIGINT ignored, the process name ``name``, the
+    niceness increment ``nice``, and one thread each for torch and OpenCV (the workers share 2 cores with
+    tracking)."""
+    import cv2
+    import torch
+
+    os.setpgid(0, 0)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    set_process_name(name)
+    if nice:
+        os.nice(nice)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def set_process_name(name: str) -> bool:
+    """Set this process's name (Linux: at most 15 bytes are kept); False where prctl is not available."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        return libc.prctl(_PR_SET_NAME, name.encode()[:15], 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def send(conn: Any, msg: tuple) -> None:
+    """Write one message (the child's side; the caller posts through :meth:`ChildChannel.post`)."""
+    conn.send_bytes(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def receive(conn: Any) -> tuple:
+    """Read one message (EOFError when the other side closed the pipe)."""
+    return pickle.loads(conn.recv_bytes())
+
+
+def messages(conn: Any) -> Iterator[tuple]:
+    """The child's loop over the parent's messages, until the pipe closes (the parent went away)."""
+    while True:
+        try:
+            yield receive(conn)
+        except EOFError:
+            return
+
+
+class ChildChannel:
+    """A daemon child ``target(conn, *args)`` started with the spawn method (no fork of a process that runs
+    threads), named ``name``, and the caller's end of its pipe.
+
+    Attributes:
+        process: the child (``multiprocessing.Process``).
+        conn: the caller's end of the pipe, for reading (:func:`receive`); writing goes through :meth:`post`.
+    """
+
+    def __init__(self, target: Callable[..., None], args: tuple, name: str) -> None:
+        ctx = mp.get_context("spawn")
+        self.conn, child_conn = ctx.Pipe()
+        self.process = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
+        self.process.start()
+        child_conn.close()
+        self._outbox: queue.Queue = queue.Queue()
+        self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
+        self._sender.start()
+
+    def post(self, msg: tuple) -> None:
+        """Queue ``msg`` for the child (pickled now, on the caller's thread)."""
+        self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """After the child was told to end (or ended): stop the sender, wait for the child (terminated after
+        ``timeout_s``) and close the pipe."""
+        self._outbox.put(None)
+        self._sender.join()
+        self.process.join(timeout=timeout_s)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(timeout=timeout_s)
+        self.conn.close()
+
+    def _write(self) -> None:
+        while (data := self._outbox.get()) is not None:
+            try:
+                self.conn.send_bytes(data)
+            except OSError:   # the child is gone; the caller's next read says so
+                return
