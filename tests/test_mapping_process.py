@@ -105,6 +105,9 @@ def test_ctrl_c_is_left_to_the_parent_and_close_leaves_no_process_or_spill_folde
         assert os.getpgid(pid) == pid != os.getpgid(0)   # a group of its own: signals to ours are not its
         with open(f"/proc/{pid}/comm") as f:
             assert f.read().strip() == "vigs-mapper"     # what ps and vigs bench soak show
+        with open(f"/proc/{pid}/status") as f:           # blocked from its start, before its handler was set
+            blocked = int(next(line for line in f if line.startswith("SigBlk:")).split()[1], 16)
+        assert blocked & (1 << (signal.SIGINT - 1))
         os.kill(pid, signal.SIGINT)   # as Ctrl-C would, had it reached the child
         time.sleep(0.5)
         assert child.channel.process.is_alive()

@@ -7,7 +7,7 @@ The caller never blocks on writing: messages are pickled on the caller's thread 
 tensor) and written by the sender thread, so the child can always answer; a 7 MB batch of keyframe views and the
 child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself.
 
-The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal and a SIGTERM to the group
+The child leaves the parent's process group and ignores SIGINT (blocked from its start): Ctrl-C in a terminal and a SIGTERM to the group
 (``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its workers still there (a
 group SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). A SIGTERM to the child
 itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and so does the pipe
@@ -86,7 +86,13 @@ class ChildChannel:
         ctx = mp.get_context("spawn")
         self.conn, child_conn = ctx.Pipe()
         self.process = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
-        self.process.start()
+        # blocked across the start (a blocked signal stays blocked in the new program): a Ctrl-C while the child
+        # still imports its modules, before enter_child, would otherwise end it with a KeyboardInterrupt
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self.process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child_conn.close()
         self._outbox: queue.Queue = queue.Queue()
         self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
