@@ -11,8 +11,8 @@ Outputs in the output folder:
 * ``odometry.txt``: TUM body poses as output causally while running (camera-rate odometry);
 * ``keyframes.txt``: TUM body poses of the keyframes;
 * ``frame_status.txt``: with the IMU, every processed frame's estimator status (:mod:`vigs_core.io.frame_status`);
-* ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and its largest child, the
-  loop-closure or mapping process, as ``peak_rss_mb_worker_process``), accuracy (Sim(3)-aligned ATE and recall against the ground truth
+* ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and the loop-closure
+  process as ``peak_rss_mb_worker_process``; the mapping process still runs then), accuracy (Sim(3)-aligned ATE and recall against the ground truth
   sampled at the frame times).
 * ``report.html``: figures (``report_figures/``) of the trajectory against the ground truth, the error over time,
   scale and biases, time per stage, keyframes and loops (:mod:`vigs_core.eval.report_html`; written last, a
