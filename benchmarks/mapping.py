@@ -1,7 +1,7 @@
 """The Gaussian map on whole sequences with estimated poses, side by side with another commit (issue 23 benchmark).
 
-Each run is ``vigs run BAG`` with mapping on (visual-inertial odometry, loop closure, the mapper on its worker
-thread, then ``--refine`` colour-refinement iterations) on the whole hybrid bag of a shared sequence
+Each run is ``vigs run BAG`` with mapping on (visual-inertial odometry, loop closure, the mapper in its worker
+process, then ``--refine`` colour-refinement iterations) on the whole hybrid bag of a shared sequence
 (``out/sim/<SEQ>_bag``), for this checkout, ``--base REV`` and every ``--variant NAME=FILE``, alternating per
 sequence as ``vigs bench tracking`` does (whose runner this uses). Rows:
 

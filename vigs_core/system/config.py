@@ -43,10 +43,10 @@ class PipelineConfig:
         imu: visual-inertial settings (:class:`vigs_core.vio.VioConfig`); with ``imu.enabled`` (default) and an
             input that has IMU data the odometry is visual-inertial (metric, gravity-aligned once initialised).
         loop: loop closure (:class:`vigs_core.loop.LoopConfig`); with ``loop.enabled`` (default) detection and
-            PGBA run on a worker thread beside tracking and correct the keyframes.
+            PGBA run in a worker process beside tracking and correct the keyframes.
         mapping: the Gaussian mapper (:class:`vigs_core.system.mapping.MappingConfig`); with ``mapping.enabled``
-            (default) keyframes are mapped on a worker thread and DIR/map.ply is written. It costs CPU (about
-            1-2 s per keyframe on a CPU core at the defaults); ``mapping: {enabled: false}`` for odometry only.
+            (default) keyframes are mapped in a worker process and DIR/map.ply is written. It takes up to a core
+            while it runs (docs/benchmarks.md, issue 23); ``mapping: {enabled: false}`` for odometry only.
         rerun: what ``vigs run --viz`` / ``--rrd`` log how often (:class:`vigs_core.viz.rerun_log.RerunConfig`).
     """
 
