@@ -126,27 +126,35 @@ class MapperProcess:
 
     # ------------------------------------------------------------------ calls (answered in order)
     def wait_idle(self) -> None:
+        """Block until the child's mapper has applied everything queued."""
         self._call("wait_idle")
 
     def stop(self) -> None:
+        """Stop the child's worker after the step in hand (queued events stay queued)."""
         self._call("stop")
 
     def drain(self, seconds: float) -> int:
+        """After :meth:`stop`: insert what is queued without refinement for at most ``seconds``; events left."""
         return self._call("drain", float(seconds))
 
     def summary(self) -> MapperSummary:
+        """Counters and sizes of the child's mapper."""
         return self._call("summary")
 
     def evaluate(self, views: Iterable[tuple[Any, Any]]) -> dict:
+        """Render quality on ``(T_WC, image)`` views (:meth:`GaussianMapper.evaluate`)."""
         return self._call("evaluate", [(host(T), host(image)) for T, image in views])
 
     def refine(self, iterations: int) -> None:
+        """Final colour refinement (:meth:`GaussianMapper.refine`)."""
         self._call("refine", int(iterations))
 
     def save(self, path: str | Path) -> Path:
+        """The child writes the map and its sidecar at ``path``; returns the sidecar path."""
         return self._call("save", Path(path))
 
     def snapshot(self) -> GaussianMap:
+        """A copy of the child's current map."""
         fields = self._call("snapshot")
         return GaussianMap(**{name: torch.from_numpy(a) for name, a in fields.items()})
 
