@@ -53,7 +53,7 @@ def render(duration_s: float, cache: Path) -> Path:
 
 
 def role(name: str, cmdline: str, top: str) -> str:
-    return NAMES.get(name) or next((role for role, key in ROLES if key in cmdline), top)
+    return NAMES.get(name) or next((r for r, key in ROLES if key in cmdline), top)
 
 
 def sample(proc: subprocess.Popen, top: str, period_s: float, progress: dict) -> dict[str, list]:

@@ -284,7 +284,8 @@ def run_until_frame(cmd: list[str], frames: int, own_group: bool = False) -> tup
 
 @pytest.mark.parametrize("signum, mapping, group", [(signal.SIGINT, True, False), (signal.SIGTERM, False, False),
                                                     (signal.SIGINT, True, True), (signal.SIGTERM, True, True)],
-                         ids=["SIGINT mapping", "SIGTERM", "SIGINT to the group mapping", "SIGTERM to the group mapping"])
+                         ids=["SIGINT mapping", "SIGTERM", "SIGINT to the group mapping",
+                              "SIGTERM to the group mapping"])
 def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_path, signum, mapping, group):
     """Ctrl-C or SIGTERM mid-run (loop closure and mapping in child processes), to the run or to its whole process
     group (Ctrl-C in a terminal, ``kill -- -PGID``): the run stops at a frame boundary, writes trajectory, report

@@ -7,12 +7,12 @@ The caller never blocks on writing: messages are pickled on the caller's thread 
 tensor) and written by the sender thread, so the child can always answer; a 7 MB batch of keyframe views and the
 child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself.
 
-The child leaves the parent's process group and ignores SIGINT (blocked from its start): Ctrl-C in a terminal and a SIGTERM to the group
-(``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its workers still there (a
-group SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). A SIGTERM to the child
-itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and so does the pipe
-closing (the parent died). Its process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench soak`` which
-worker it is: spawned children all run the same command line.
+The child leaves the parent's process group and ignores SIGINT (blocked from its start): Ctrl-C in a terminal and a
+SIGTERM to the group (``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its
+workers still there (a group SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). A
+SIGTERM to the child itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and
+so does the pipe closing (the parent died). Its process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench
+soak`` which worker it is: spawned children all run the same command line.
 """
 from __future__ import annotations
 
@@ -27,6 +27,10 @@ import threading
 from typing import Any, Callable, Iterator
 
 _PR_SET_NAME = 15   # prctl(2)
+
+
+class ChildProcessEnded(RuntimeError):
+    """The child ended while the caller waited for its answer (the message says ``process ended (exit code N)``)."""
 
 
 def enter_child(name: str, nice: int = 0) -> None:
@@ -79,7 +83,8 @@ class ChildChannel:
 
     Attributes:
         process: the child (``multiprocessing.Process``).
-        conn: the caller's end of the pipe, for reading (:func:`receive`); writing goes through :meth:`post`.
+        conn: the caller's end of the pipe (``poll``); reading goes through :meth:`receive`, writing through
+            :meth:`post`.
     """
 
     def __init__(self, target: Callable[..., None], args: tuple, name: str) -> None:
@@ -101,6 +106,14 @@ class ChildChannel:
     def post(self, msg: tuple) -> None:
         """Queue ``msg`` for the child (pickled now, on the caller's thread)."""
         self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def receive(self) -> tuple:
+        """The child's next message; :class:`ChildProcessEnded` when the child is gone."""
+        try:
+            return receive(self.conn)
+        except (EOFError, OSError) as err:
+            self.process.join(timeout=1)
+            raise ChildProcessEnded(f"process ended (exit code {self.process.exitcode})") from err
 
     def close(self, timeout_s: float = 10.0) -> None:
         """After the child was told to end (or ended): stop the sender, wait for the child (terminated after

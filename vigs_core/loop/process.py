@@ -39,7 +39,7 @@ from typing import Any, Sequence
 import torch
 
 from vigs_core.arrays import host
-from vigs_core.child_process import ChildChannel, enter_child, messages, receive, send
+from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.heap import map_large_blocks
@@ -135,10 +135,9 @@ class LoopClosureProcess:
 
     def _receive(self) -> tuple:
         try:
-            return receive(self._channel.conn)
-        except (EOFError, OSError) as err:
-            self._channel.process.join(timeout=1)
-            raise RuntimeError(f"the loop-closure process ended (exit code {self._channel.process.exitcode})") from err
+            return self._channel.receive()
+        except ChildProcessEnded as err:
+            raise RuntimeError(f"the loop-closure {err}") from err
 
     def _drain(self) -> None:
         while self._channel.conn.poll(0):

@@ -29,7 +29,7 @@ from typing import Any, Callable, Iterable
 import torch
 
 from vigs_core.arrays import host
-from vigs_core.child_process import ChildChannel, enter_child, messages, receive, send
+from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.mapper import GaussianMapper, MapperConfig, MapperSummary
 
@@ -178,11 +178,9 @@ class MapperProcess:
     def _call(self, name: str, *args: Any) -> Any:
         self.channel.post(("call", name, args))
         try:
-            kind, value = receive(self.channel.conn)
-        except (EOFError, OSError) as err:
-            self.channel.process.join(timeout=1)
-            raise MappingProcessError(
-                f"the mapping process ended (exit code {self.channel.process.exitcode})") from err
+            kind, value = self.channel.receive()
+        except ChildProcessEnded as err:
+            raise MappingProcessError(f"the mapping {err}") from err
         if kind == "error":
             raise MappingProcessError(f"mapping failed in its process:\n{value}")
         return value

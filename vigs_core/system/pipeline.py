@@ -12,8 +12,8 @@ Outputs in the output folder:
 * ``keyframes.txt``: TUM body poses of the keyframes;
 * ``frame_status.txt``: with the IMU, every processed frame's estimator status (:mod:`vigs_core.io.frame_status`);
 * ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and the loop-closure
-  process as ``peak_rss_mb_worker_process``; the mapping process still runs then), accuracy (Sim(3)-aligned ATE and recall against the ground truth
-  sampled at the frame times).
+  process as ``peak_rss_mb_worker_process``; the mapping process still runs then), accuracy (Sim(3)-aligned
+  ATE and recall against the ground truth sampled at the frame times).
 * ``report.html``: figures (``report_figures/``) of the trajectory against the ground truth, the error over time,
   scale and biases, time per stage, keyframes and loops (:mod:`vigs_core.eval.report_html`; written last, a
   failure to plot is a warning).
