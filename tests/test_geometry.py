@@ -5,6 +5,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vigs_core import geometry as g
+from vigs_core.geometry import se3, sim3
 
 D = torch.float64
 
@@ -128,6 +129,19 @@ def test_group_exp_log_adjoint_jacobians(exp, log, adj, jl, jr, jli, jri, dim):
     eye = np.broadcast_to(np.eye(dim), (30, dim, dim))
     np.testing.assert_allclose((jli(xi) @ jl(xi)).numpy(), eye, atol=1e-10)
     np.testing.assert_allclose((jri(xi) @ jr(xi)).numpy(), eye, atol=1e-10)
+
+
+@pytest.mark.parametrize("ad,dim", [(se3.se3_ad, 6), (sim3.sim3_ad, 7)])
+def test_inverse_jacobian_series_matches_the_exact_inverse(ad, dim):
+    """Small twists (as pose-graph residuals) take the Bernoulli series, large ones the exact inverse, in one
+    batch; both invert the series left Jacobian."""
+    xi = torch.cat((random_twists(40, dim, seed=3, scale=0.02), random_twists(20, dim, seed=4, scale=0.1),
+                    random_twists(10, dim, seed=6, scale=1.5)))
+    a = ad(xi)
+    small = torch.linalg.matrix_norm(a) <= 0.5
+    assert 0 < int(small.sum()) < len(xi)
+    inv = se3.series_left_jacobian_inv(a)
+    np.testing.assert_allclose(inv.numpy(), torch.linalg.inv(se3.series_left_jacobian(a)).numpy(), atol=1e-12)
 
 
 def test_se3_act_inverse_compose():

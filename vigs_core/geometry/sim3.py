@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from vigs_core.geometry.se3 import series_left_jacobian
+from vigs_core.geometry.se3 import series_left_jacobian, series_left_jacobian_inv
 from vigs_core.geometry.so3 import hat, so3_exp, so3_log
 
 
@@ -119,9 +119,9 @@ def sim3_right_jacobian(xi: torch.Tensor) -> torch.Tensor:
 
 def sim3_left_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`sim3_left_jacobian`."""
-    return torch.linalg.inv(sim3_left_jacobian(xi))
+    return series_left_jacobian_inv(sim3_ad(xi))
 
 
 def sim3_right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`sim3_right_jacobian`."""
-    return torch.linalg.inv(sim3_right_jacobian(xi))
+    return series_left_jacobian_inv(sim3_ad(-xi))
