@@ -89,17 +89,28 @@ class DISFlowEstimator:
 
     def dense_flow(self, source: np.ndarray, target: np.ndarray, initial: np.ndarray | None,
                    dis: cv2.DISOpticalFlow | None = None) -> np.ndarray:
-        """DIS flow (H, W, 2) float32 from ``source`` to ``target``, initialised with ``initial`` or, without one,
-        with zero flow (``dis``: the DIS instance to use, default the estimator's own). The zero flow is passed
-        explicitly: OpenCV 5.0's DIS, called without an initial flow after a call with one, silently starts from
-        that earlier initial flow, so a flow would depend on the pair computed before it."""
+        """DIS flow (H, W, 2) float32 from ``source`` to ``target``, initialised with ``initial`` (not modified) or,
+        without one, with zero flow (``dis``: the DIS instance to use, default the estimator's own). The zero flow
+        is passed explicitly: OpenCV 5.0's DIS, called without an initial flow after a call with one, silently
+        starts from that earlier initial flow, so a flow would depend on the pair computed before it."""
+        start = (np.zeros(source.shape[:2] + (2,), dtype=np.float32) if initial is None
+                 else np.array(initial, dtype=np.float32, order="C"))
+        return self._refine(source, target, start, dis)
+
+    def _refine(self, source: np.ndarray, target: np.ndarray, flow: np.ndarray,
+                dis: cv2.DISOpticalFlow | None = None) -> np.ndarray:
+        """:meth:`dense_flow` refining ``flow`` (H, W, 2) C-contiguous float32 in place (a temporary of the
+        caller's: one image-sized allocation less per flow)."""
         self._check(source)
         self._check(target)
-        dis = dis or self._dis
-        if initial is None:
-            initial = np.zeros(source.shape[:2] + (2,), dtype=np.float32)
         # DIS refines a flow passed in with the image's size and 2 float32 channels (its "initial flow")
-        return dis.calc(source, target, np.array(initial, dtype=np.float32, order="C"))
+        return (dis or self._dis).calc(source, target, flow)
+
+    def _flow_from(self, source: np.ndarray, target: np.ndarray, initial: np.ndarray | None,
+                   dis: cv2.DISOpticalFlow | None = None) -> np.ndarray:
+        """:meth:`dense_flow` from an initial flow of :meth:`_initial_flow` (a temporary, refined in place)."""
+        return self.dense_flow(source, target, None, dis) if initial is None else self._refine(source, target,
+                                                                                                initial, dis)
 
     def grid_flow(self, flow: np.ndarray) -> np.ndarray:
         """Cell means (P, 2) of a dense flow field (H, W, 2)."""
@@ -122,8 +133,8 @@ class DISFlowEstimator:
         used for per-frame tracking where the robust kernel handles the remaining outliers. The backward flow
         is initialised with the negated forward flow.
         """
-        fwd = self.dense_flow(source, target, self._initial_flow(initial_target))
-        bwd = self.dense_flow(target, source, -fwd) if forward_backward else None
+        fwd = self._flow_from(source, target, self._initial_flow(initial_target))
+        bwd = self._refine(target, source, np.negative(fwd)) if forward_backward else None
         return self._correspondences(source, target, fwd, bwd)
 
     def estimate_pair(self, a: np.ndarray, b: np.ndarray, initial_ab: np.ndarray | None = None,
@@ -146,15 +157,15 @@ class DISFlowEstimator:
         init_ab, init_ba = self._initial_flow(initial_ab), self._initial_flow(initial_ba)
 
         def pair(f_ba: Future | None) -> tuple[Correspondences, Correspondences]:
-            f_ab = self.dense_flow(a, b, init_ab)
-            back = f_ba.result() if f_ba is not None else self.dense_flow(b, a, init_ba)
+            f_ab = self._flow_from(a, b, init_ab)
+            back = f_ba.result() if f_ba is not None else self._flow_from(b, a, init_ba)
             return self._correspondences(a, b, f_ab, back), self._correspondences(b, a, back, f_ab)
 
         if self._pool is None:
             done: Future = Future()
             done.set_result(pair(None))
             return done
-        return self._pool.submit(pair, self._pool.submit(self.dense_flow, b, a, init_ba, self._pair_dis))
+        return self._pool.submit(pair, self._pool.submit(self._flow_from, b, a, init_ba, self._pair_dis))
 
     def _initial_flow(self, initial_target: np.ndarray | None) -> np.ndarray | None:
         """Dense initial flow (H, W, 2) from grid targets (P, 2) (non-finite guesses count as zero flow,
@@ -179,8 +190,8 @@ class DISFlowEstimator:
         if bwd is not None:
             b = cv2.remap(bwd, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
             e_fb = np.linalg.norm(f + b, axis=-1)
-        box_s = cv2.blur(source.astype(np.float32), (g.stride, g.stride))
-        box_t = cv2.blur(target.astype(np.float32), (g.stride, g.stride))
+        box_s = cv2.boxFilter(source, cv2.CV_32F, (g.stride, g.stride))   # cell means, as float32 directly
+        box_t = cv2.boxFilter(target, cv2.CV_32F, (g.stride, g.stride))
         cs = self._coords
         i_s = cv2.remap(box_s, cs[:, 0].reshape(g.rows, g.cols), cs[:, 1].reshape(g.rows, g.cols),
                         cv2.INTER_LINEAR).reshape(-1)
