@@ -7,18 +7,21 @@ The caller never blocks on writing: messages are pickled on the caller's thread 
 tensor) and written by the sender thread, so the child can always answer; a 7 MB batch of keyframe views and the
 child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself.
 
-The child leaves the parent's process group and ignores SIGINT (blocked from its start): Ctrl-C in a terminal and a
-SIGTERM to the group (``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its
-workers still there (a group SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). A
-SIGTERM to the child itself ends it (multiprocessing terminates its daemon children so at the parent's exit), and
-so does the pipe closing (the parent died). Its process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench
-soak`` which worker it is: spawned children all run the same command line.
+The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal and a SIGTERM to the group
+(``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its workers still there (a group
+SIGTERM had ended the loop-closure child and then the run, its outputs unwritten). Both signals are blocked from
+the child's start until it has left the group, and a group SIGTERM that arrived meanwhile (the child spends about
+a second importing its modules) is discarded there. A SIGTERM to the child itself ends it (multiprocessing
+terminates its daemon children so at the parent's exit), and so does the pipe closing (the parent died). Its
+process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench soak`` which worker it is: spawned children all
+run the same command line.
 """
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
 import multiprocessing as mp
+from multiprocessing import resource_tracker
 import os
 import pickle
 import queue
@@ -34,14 +37,18 @@ class ChildProcessEnded(RuntimeError):
 
 
 def enter_child(name: str, nice: int = 0) -> None:
-    """First step of a worker child: its own process group, SIGINT ignored, the process name ``name``, the
-    niceness increment ``nice``, and one thread each for torch and OpenCV (the workers share 2 cores with
-    tracking)."""
+    """First step of a worker child: its own process group, SIGINT ignored, SIGTERM unblocked (a SIGTERM sent to the
+    parent's group before this point is discarded: setting a pending signal to ignored drops it), the process name
+    ``name``, the niceness increment ``nice``, and one thread each for torch and OpenCV (the workers share 2 cores
+    with tracking)."""
     import cv2
     import torch
 
     os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     set_process_name(name)
     if nice:
         os.nice(nice)
@@ -91,9 +98,12 @@ class ChildChannel:
         ctx = mp.get_context("spawn")
         self.conn, child_conn = ctx.Pipe()
         self.process = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
-        # blocked across the start (a blocked signal stays blocked in the new program): a Ctrl-C while the child
-        # still imports its modules, before enter_child, would otherwise end it with a KeyboardInterrupt
-        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        # blocked across the start (a blocked signal stays blocked in the new program): a Ctrl-C or a SIGTERM to the
+        # group while the child still imports its modules, before enter_child, would otherwise end it. The start
+        # launches multiprocessing's resource tracker the first time, which unblocks both after launching it: so
+        # launch it before blocking them
+        resource_tracker.ensure_running()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
         try:
             self.process.start()
         finally:
