@@ -21,12 +21,12 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import multiprocessing as mp
-from multiprocessing import resource_tracker
 import os
 import pickle
 import queue
 import signal
 import threading
+from multiprocessing import resource_tracker
 from typing import Any, Callable, Iterator
 
 _PR_SET_NAME = 15   # prctl(2)
