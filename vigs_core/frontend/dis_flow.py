@@ -106,12 +106,6 @@ class DISFlowEstimator:
         # DIS refines a flow passed in with the image's size and 2 float32 channels (its "initial flow")
         return (dis or self._dis).calc(source, target, flow)
 
-    def _flow_from(self, source: np.ndarray, target: np.ndarray, initial: np.ndarray | None,
-                   dis: cv2.DISOpticalFlow | None = None) -> np.ndarray:
-        """:meth:`dense_flow` from an initial flow of :meth:`_initial_flow` (a temporary, refined in place)."""
-        return self.dense_flow(source, target, None, dis) if initial is None else self._refine(source, target,
-                                                                                                initial, dis)
-
     def grid_flow(self, flow: np.ndarray) -> np.ndarray:
         """Cell means (P, 2) of a dense flow field (H, W, 2)."""
         g = self.grid
@@ -133,7 +127,7 @@ class DISFlowEstimator:
         used for per-frame tracking where the robust kernel handles the remaining outliers. The backward flow
         is initialised with the negated forward flow.
         """
-        fwd = self._flow_from(source, target, self._initial_flow(initial_target))
+        fwd = self._refine(source, target, self._initial_flow(initial_target))
         bwd = self._refine(target, source, np.negative(fwd)) if forward_backward else None
         return self._correspondences(source, target, fwd, bwd)
 
@@ -157,22 +151,23 @@ class DISFlowEstimator:
         init_ab, init_ba = self._initial_flow(initial_ab), self._initial_flow(initial_ba)
 
         def pair(f_ba: Future | None) -> tuple[Correspondences, Correspondences]:
-            f_ab = self._flow_from(a, b, init_ab)
-            back = f_ba.result() if f_ba is not None else self._flow_from(b, a, init_ba)
+            f_ab = self._refine(a, b, init_ab)
+            back = f_ba.result() if f_ba is not None else self._refine(b, a, init_ba)
             return self._correspondences(a, b, f_ab, back), self._correspondences(b, a, back, f_ab)
 
         if self._pool is None:
             done: Future = Future()
             done.set_result(pair(None))
             return done
-        return self._pool.submit(pair, self._pool.submit(self._flow_from, b, a, init_ba, self._pair_dis))
+        return self._pool.submit(pair, self._pool.submit(self._refine, b, a, init_ba, self._pair_dis))
 
-    def _initial_flow(self, initial_target: np.ndarray | None) -> np.ndarray | None:
-        """Dense initial flow (H, W, 2) from grid targets (P, 2) (non-finite guesses count as zero flow,
-        magnitudes are clipped to the image size), or None."""
-        if initial_target is None:
-            return None
+    def _initial_flow(self, initial_target: np.ndarray | None) -> np.ndarray:
+        """Dense initial flow (H, W, 2), a new array for :meth:`_refine`: from grid targets (P, 2) (non-finite
+        guesses count as zero flow, magnitudes are clipped to the image size), zero flow without them (passed to
+        DIS explicitly, see :meth:`dense_flow`)."""
         g = self.grid
+        if initial_target is None:
+            return np.zeros((g.height, g.width, 2), dtype=np.float32)
         guess = np.asarray(initial_target, dtype=np.float64) - self._coords
         guess = np.where(np.isfinite(guess), guess, 0.0)
         lim = float(max(g.width, g.height))
