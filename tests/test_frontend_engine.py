@@ -33,7 +33,8 @@ def test_world_rescaling_is_reported_with_its_depth_scale():
     s = 0.3   # world x -> s x: positions times s, disparities over s
     T_new = T_wc.clone()
     T_new[:3, 3] *= s
-    kf.pose, kf.disp = se3_inverse(T_new), kf.disp / s
+    kf.pose = se3_inverse(T_new)
+    kf.rescale_depth(s)
     out = FrameOutput(20, None)
     engine.report_keyframes(out, metric=True)
     T_reported, c = out.updated_keyframes[3]

@@ -130,7 +130,7 @@ class BrokenInformation:
 
 def test_worker_process_hands_its_errors_to_the_caller():
     odo = small_odometry(2)
-    views = keyframe_views([odo.keyframes[0], odo.keyframes[1]], [1.0, 1.0])
+    views = keyframe_views([odo.keyframes[0], odo.keyframes[1]], [1.0, 1.0], [True, True], [True, True])
     closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
     closure.add_keyframe(views[0], [])
     closure.add_keyframe(views[1], views[:1], BrokenInformation())
@@ -209,8 +209,8 @@ def test_loop_edges_follow_the_depth_units_of_applied_corrections():
 
 
 def test_driver_views_follow_keyframes_re_expressed_outside_the_window():
-    """The visual-inertial world alignment replaces every keyframe's pose and disparity, also of keyframes that
-    left the window long ago; loop detection must see them in the new (metric) world, not a stale cache."""
+    """The visual-inertial world alignment replaces every keyframe's pose and scales its depths, also of keyframes
+    that left the window long ago; loop detection must see them in the new (metric) world, not a stale cache."""
     odo = small_odometry(4)
     odo.graph.keyframes = [3]   # only the newest keyframe is still in the window
     driver = LoopClosureDriver(LoopConfig(asynchronous=False), odo)
@@ -219,11 +219,13 @@ def test_driver_views_follow_keyframes_re_expressed_outside_the_window():
     kf = odo.keyframes[0]
     T_wc = se3_inverse(kf.pose)
     T_wc[:3, 3] *= s
-    kf.pose, kf.disp = se3_inverse(T_wc), kf.disp / s
+    kf.pose = se3_inverse(T_wc)
+    kf.rescale_depth(s)
     after = driver._current_views()
     torch.testing.assert_close(after[0].T_WC[:3, 3], s * before[0].T_WC[:3, 3])
-    torch.testing.assert_close(after[0].depth, before[0].depth * s)
-    assert after[1] is before[1]   # unchanged keyframes keep their cached view
+    torch.testing.assert_close(after[0].depth, before[0].depth * s)   # still has its disparities: carried
+    assert after[0].depth_scale == s
+    assert after[1].T_WC is before[1].T_WC and after[1].disp is None   # unchanged: the cached view, bare
 
 
 def test_final_poses_spread_the_next_keyframes_correction_and_follow_a_similarity():
@@ -254,38 +256,46 @@ def test_final_poses_spread_the_next_keyframes_correction_and_follow_a_similarit
     np.testing.assert_allclose(se3_inverse(after)[:, :3, 3].numpy(), sim3_act(C, centres).numpy(), atol=1e-12)
 
 
-def test_the_worker_process_gets_images_once_and_depths_where_detection_reads_them():
-    """Views go to the child when new or changed, the image only with the first; a changed depth only once the
-    keyframe is old enough to be a loop candidate (the window's BA changes young keyframes' depths at every
-    keyframe); the child keeps the depth it has meanwhile."""
-    odo = small_odometry(6)
-    closure = LoopClosureProcess(LoopConfig(detection=LoopDetectionConfig(min_keyframe_gap=3)), GRID,
-                                 DISFlowEstimator(GRID).config, INTR)
+def test_the_worker_process_gets_images_and_disparities_once_each():
+    """Through the driver, views go to the child when new or changed: image and disparities with a keyframe's first
+    view, its disparities again once it has left the frontend's window (their last revision; the frontend drops
+    them at the next frame), never for the revisions of BA inside the window; a uniform rescaling travels as the
+    depth scale alone."""
+    odo = small_odometry(5)
+    keyframes = dict(odo.keyframes)
+    odo.keyframes = {k: keyframes[k] for k in range(3)}
+    odo.graph.keyframes = [0, 1, 2]
+    driver = LoopClosureDriver(LoopConfig(detection=LoopDetectionConfig(min_keyframe_gap=3)), odo)
     posted = []
-    post = closure._post
-    closure._post = lambda msg: (posted.append(msg), post(msg))
-    views = keyframe_views([odo.keyframes[k] for k in range(6)], [1.0] * 6)
-    history = []
-    for k in range(3):
-        closure.add_keyframe(views[k], history)
-        history.append(views[k])
-    sent = [m[1] for m in posted if m[0] == "views"]
-    assert [[(v[0], v[2] is not None, v[4] is not None) for v in batch] for batch in sent] == \
-        [[(0, True, True)], [(1, True, True)], [(2, True, True)]]
-    # BA changed keyframes 0 and 2 (it replaces pose and disparities): at new keyframe 3 only 0 is a candidate
-    for k in (0, 2):
-        odo.keyframes[k].pose, odo.keyframes[k].disp = odo.keyframes[k].pose.clone(), odo.keyframes[k].disp * 1.01
-    moved = keyframe_views([odo.keyframes[0], odo.keyframes[2]], [1.0, 1.0])
-    history = [moved[0], views[1], moved[1]]
-    posted.clear()
-    closure.add_keyframe(views[3], history)
-    (batch,) = [m[1] for m in posted if m[0] == "views"]
-    assert [(v[0], v[2] is not None, v[4] is not None) for v in batch] == [(0, True, False), (2, False, False),
-                                                                           (3, True, True)]
-    # at keyframe 5, keyframe 2 is old enough: its depth changed since it was last sent, so it goes now
-    posted.clear()
-    closure.add_keyframe(views[5], [*history, views[3]])
-    (batch,) = [m[1] for m in posted if m[0] == "views"]
-    assert [(v[0], v[2] is not None) for v in batch] == [(2, True), (5, True)]
-    closure.wait()
-    closure.close()
+    post = driver.closure._post
+    driver.closure._post = lambda msg: (posted.append(msg), post(msg))
+
+    def sent():   # (id, disparities?, image?, revision, depth scale) of the views posted since the last call
+        out = [(v[0], v[2] is not None, v[4] is not None, v[5], v[6]) for m in posted if m[0] == "views"
+               for v in m[1]]
+        posted.clear()
+        return out
+
+    try:
+        driver.step()
+        assert sent() == [(0, True, True, 0, 1.0), (1, True, True, 0, 1.0), (2, True, True, 0, 1.0)]
+        # keyframe 3 enters the window, 0 leaves it; BA re-estimated 1 and 2 (new pose and disparities)
+        for k in (1, 2):
+            kf = odo.keyframes[k]
+            kf.pose = kf.pose.clone()
+            kf.set_disparities(kf.disp * 1.01)
+        odo.keyframes[3], odo.graph.keyframes = keyframes[3], [1, 2, 3]
+        driver.step()
+        assert sent() == [(0, True, False, 0, 1.0), (1, False, False, 1, 1.0), (2, False, False, 1, 1.0),
+                          (3, True, True, 0, 1.0)]
+        # the frontend dropped 0's disparities; a loop correction moves 0 and doubles its depths; 4 comes, 1 leaves
+        kf = odo.keyframes[0]
+        kf.disp = None
+        kf.pose = kf.pose.clone()
+        kf.rescale_depth(2.0)
+        odo.keyframes[4], odo.graph.keyframes = keyframes[4], [2, 3, 4]
+        driver.step()
+        assert sent() == [(0, False, False, 0, 2.0), (1, True, False, 1, 1.0), (4, True, True, 0, 1.0)]
+        driver.finish()   # the child ran detection on all of it (keyframe 4 against 0 and 1) without an error
+    finally:
+        driver.closure.close()

@@ -58,6 +58,25 @@ def test_a_candidates_loop_edge_does_not_depend_on_the_pairs_checked_before():
     assert again.accepted.inlier_fraction == fresh.accepted.inlier_fraction
 
 
+def test_the_detector_keeps_disparities_and_follows_the_depth_scale_of_views_without_them(tmp_path):
+    """Views of keyframes that left the frontend's window come without disparities: the detector uses those it
+    kept (read back from disk when spilled), rescaled by the view's depth scale, as if the view carried them."""
+    torch.set_num_threads(1)
+    old, new = view(0, 30.0, [0.3, 0.2, 1.5]), view(100, 36.0, [0.4, 0.15, 1.45])
+    s = 1.5   # a loop correction grew old's depths by s since the detector kept them
+    carried = LoopDetector(DISFlowEstimator(GRID), INTR).detect(
+        new, [dataclasses.replace(old, disp=old.disp / s, depth_scale=s)])
+    kept = LoopDetector(DISFlowEstimator(GRID), INTR, images=SpillConfig(resident=1, directory=str(tmp_path)))
+    kept.detect(old, [])                                        # old seen as new: image and disparities kept
+    kept.detect(view(50, -60.0, [0.2, -0.5, 1.5]), [])           # another one: old's go to disk
+    assert kept._disps.writes >= 1
+    again = kept.detect(new, [dataclasses.replace(old, image=None, disp=None, depth_scale=s)])
+    assert carried.accepted is not None and again.accepted is not None
+    torch.testing.assert_close(again.accepted.relative, carried.accepted.relative, rtol=1e-9, atol=1e-9)
+    kept.close()
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_the_detector_keeps_images_of_keyframes_it_has_seen_so_views_need_not(tmp_path):
     """Views of registered keyframes come without images (the callers drop them to bound memory): the detector
     uses the images it kept when they were new, read back from disk when spilled, with the same result."""

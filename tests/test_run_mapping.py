@@ -13,6 +13,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
+from vigs_core.frontend.odometry import Keyframe
 from vigs_core.geometry import se3_inverse
 from vigs_core.mapping import MapperConfig, load_map
 from vigs_core.sim.render import Renderer
@@ -122,15 +123,6 @@ def test_mapping_can_be_disabled_and_config_is_validated():
 
 
 @dataclass
-class _Kf:
-    id: int
-    t_ns: int
-    image: np.ndarray
-    pose: torch.Tensor
-    disp: torch.Tensor
-
-
-@dataclass
 class _Edge:
     weight: np.ndarray
 
@@ -152,7 +144,7 @@ class _FakeOdometry:
             disp = torch.full((24,), 0.5, dtype=torch.float64)
             disp[0] = -1.0          # invalid
             disp[1] = 0.01          # 100 m: far beyond 5x the median depth
-            self.keyframes[k] = _Kf(k, 1000 * k, rng.integers(0, 255, (H, W), dtype=np.uint8), se3_inverse(T_WC),
+            self.keyframes[k] = Keyframe(k, 1000 * k, rng.integers(0, 255, (H, W), dtype=np.uint8), se3_inverse(T_WC),
                                     disp)
         weight = np.ones(24)
         weight[2] = 0.0             # unconfident cell
@@ -171,7 +163,7 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch(pro
     z = online._depth(0, odo.keyframes[0].disp)
     assert z.shape == (4, 6) and z[0, 0] == 0 and z[0, 1] == 0 and z[0, 2] == 0 and z[0, 3] == pytest.approx(2.0)
     online.step(odo.keyframes[1].image)
-    assert sorted(online._sent) == [0]               # keyframe 1 waits for a newer one
+    assert sorted(online._sent.ids()) == [0]               # keyframe 1 waits for a newer one
     online.mapper.wait_idle()
     means = online.mapper.snapshot().means
     # a world rescale by s = 3 (as the visual-inertial alignment does): positions x3, disparities /3
@@ -179,7 +171,8 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch(pro
     for kf in odo.keyframes.values():
         T_WC = se3_inverse(kf.pose)
         T_WC[:3, 3] *= s
-        kf.pose, kf.disp = se3_inverse(T_WC), kf.disp / s
+        kf.pose = se3_inverse(T_WC)
+        kf.rescale_depth(s)
     online.step(odo.keyframes[1].image)
     assert online.pose_update_batches == 1
     online.mapper.wait_idle()
@@ -195,7 +188,7 @@ def test_keyframe_depth_masking_and_world_rescale_moves_the_map_in_one_batch(pro
     online.step(odo.keyframes[1].image)
     assert online.pose_update_batches == 1
     online.finish()
-    assert sorted(online._sent) == [0, 1] and online.mapper.summary().stats.keyframes == 2
+    assert sorted(online._sent.ids()) == [0, 1] and online.mapper.summary().stats.keyframes == 2
     online.close()
 
 

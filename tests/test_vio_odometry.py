@@ -188,14 +188,17 @@ def test_metric_windows_hold_the_fixed_keyframes_depth(room_sequence, monkeypatc
     assert np.sqrt((((p @ R1.T + t1) - gt) ** 2).sum(1).mean()) < 0.1
 
 
-def test_keyframes_that_left_the_window_drop_their_images(room_sequence):
-    """Only window keyframes are matched: the others' images are dropped at the next frame (loop closure and the
-    mapper took them when the keyframes were new), so memory does not grow with every keyframe's pixels."""
+def test_keyframes_that_left_the_window_drop_their_images_and_disparities(room_sequence):
+    """Only window keyframes are matched and adjusted: the others' images and disparities are dropped at the next
+    frame (loop closure and the mapper took them while the keyframes were in the window), so memory does not grow
+    with every keyframe's pixels and depths; their revisions stay as the last BA left them."""
     stamps, images, _, _, _ = room_sequence
     odo = _run(DenseOdometry(Intrinsics(FX, FX, CX, CY), W, H, OdometryConfig()), stamps, images)
     window = set(odo.graph.keyframes)
     with_image = {k for k, kf in odo.keyframes.items() if kf.image is not None}
+    with_disp = {k for k, kf in odo.keyframes.items() if kf.disp is not None}
     assert len(odo.keyframes) > len(window) + 2
     # those that left the window during the last frame's work keep theirs until the next frame
-    assert window <= with_image and len(with_image - window) <= 1
+    assert window <= with_image and len(with_image - window) <= 1 and with_disp == with_image
     assert all(odo.keyframes[k].image.shape == (H, W) for k in window)
+    assert all(kf.revision >= 1 for kf in odo.keyframes.values())   # every keyframe went through BA

@@ -21,10 +21,10 @@ import torch
 from msg_adapters.image import to_mono8
 from msg_adapters.vigs import KeyframeData
 from vigs_core.camera import CameraModel
+from vigs_core.frontend.keyframe_changes import SentKeyframes
 from vigs_core.geometry import nearest_rotation
 from vigs_core.loop import apply_to_odometry
 from vigs_core.system import OdometryStream, PipelineConfig
-from vigs_core.system.mapping import depth_scale_change
 from vigs_core.types import ImuNoise
 from vigs_ros.frames import invert
 
@@ -42,7 +42,7 @@ class KeyframeState:
 class FrameOutput:
     """Result of one frame: ``T_wc`` (4, 4) or None while initialising; new keyframes with their inertial
     states; ``updated_keyframes`` {id: (T_wc, c)} of existing keyframes whose pose moved, or whose depths
-    grew by a factor ``c`` (:func:`vigs_core.system.mapping.depth_scale_change`), by more than the tolerance
+    grew by a factor ``c`` (:class:`vigs_core.frontend.keyframe_changes.SentKeyframes`), by more than the tolerance
     since they were last published;
     ``realigned``: the world was re-expressed (IMU initialisation); ``inertial_initialized``: the world is
     metric and gravity-aligned; ``rotation_error``: the largest ``max|R^T R - I|`` of the core's poses before
@@ -82,10 +82,7 @@ class FrontendEngine:
         self.odometry = self.stream.odometry
         self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
         self.pose_update_tolerance = pose_update_tolerance
-        self._published: dict[int, tuple[np.ndarray, torch.Tensor]] = {}   # T_wc, disparity last published
-        # the pose and disparity tensors last compared with what was published: the core replaces a keyframe's
-        # tensors when it changes them, never edits them, so a keyframe whose tensors are these is unchanged
-        self._compared: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._published = SentKeyframes()   # T_wc and depths last published of each keyframe
         self._metric = False
         self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
 
@@ -133,23 +130,22 @@ class FrontendEngine:
         call are compared: a long run keeps thousands of keyframes, of which BA changes only the window's."""
         for kf_id in sorted(self.odometry.keyframes):
             kf = self.odometry.keyframes[kf_id]
-            compared = self._compared.get(kf_id)
-            if compared is not None and compared[0] is kf.pose and compared[1] is kf.disp:
-                continue
-            self._compared[kf_id] = (kf.pose, kf.disp)
-            T_wc = self._rigid_inverse(kf.pose.numpy(), out)
             if kf_id not in self._published:
+                T_wc = self._rigid_inverse(kf.pose.numpy(), out)
                 disparity = kf.disp.numpy().astype(np.float32).reshape(self.grid_shape)
                 out.new_keyframes.append(KeyframeData(kf_id, kf.t_ns, T_wc, kf.image, "mono8", self.camera,
                                                       disparity, metric=metric))
                 out.keyframe_states[kf_id] = self.keyframe_state(kf_id)
             else:
-                T_old, d_old = self._published[kf_id]
-                c = 1.0 if d_old is kf.disp else depth_scale_change(d_old, kf.disp)  # replaced, never edited
+                change = self._published.change(kf)
+                if change is None:
+                    continue
+                T_old, c = change
+                T_wc = self._rigid_inverse(kf.pose.numpy(), out)
                 if max(_pose_distance(T_old, T_wc), abs(np.log(c))) <= self.pose_update_tolerance:
                     continue   # changes below the tolerance accumulate until they exceed it
                 out.updated_keyframes[kf_id] = (T_wc, c)
-            self._published[kf_id] = (T_wc, kf.disp)
+            self._published.record(kf, T_wc)
 
     def apply_corrections(self, poses: dict[int, np.ndarray], scales: dict[int, float]) -> int:
         """Apply external keyframe corrections (loop closure: new ``T_WC`` (4, 4) and depth scale ``c`` per
@@ -174,7 +170,7 @@ class FrontendEngine:
                 if state is not None:  # v' = c R_c v, with C[:3, :3] = c R_c
                     state.velocity = C[:3, :3] @ state.velocity.to(torch.float64)
         for k, (T_wc, _) in updates.items():   # the loop detector publishes these corrections itself
-            self._published[k] = (T_wc.numpy(), self.odometry.keyframes[k].disp)
+            self._published.record(self.odometry.keyframes[k], T_wc.numpy())
         return len(updates)
 
     def pose_before_correction(self, T_wc: np.ndarray, kf_id: int | None) -> np.ndarray | None:

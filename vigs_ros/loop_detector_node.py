@@ -103,7 +103,8 @@ class LoopDetectorNode(VigsNode):
         disp = torch.as_tensor(kf.disparity.reshape(-1), dtype=F64)
         view = KeyframeView(kf.id, grey, torch.as_tensor(kf.T_wc, dtype=F64), disp, self.closure.unit(kf.id))
         self.closure.add_keyframe(view, [self.views[k] for k in sorted(self.views)])
-        self.views[kf.id] = dataclasses.replace(view, image=None)   # the detector keeps the image (spilled when old)
+        # the detector keeps image and disparities (spilled when old); later scalings go into depth_scale
+        self.views[kf.id] = dataclasses.replace(view, image=None, disp=None)
         self.metric = kf.metric
         self.status.count("keyframes_in")
         self.poll()
@@ -150,7 +151,7 @@ class LoopDetectorNode(VigsNode):
         are snapshots: never edited in place)."""
         view = self.views.get(kf_id)
         if view is not None:
-            self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, disp=view.disp / depth_scale)
+            self.views[kf_id] = dataclasses.replace(view, T_WC=T_WC, depth_scale=view.depth_scale * depth_scale)
 
     def close(self) -> None:
         """Stop loop closure without searching the keyframes still queued (nothing would receive the result)."""

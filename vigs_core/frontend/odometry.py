@@ -143,16 +143,36 @@ class OdometryConfig:
 class Keyframe:
     """A keyframe: id, time (ns), grey image (H, W) uint8, pose ``T_cw`` (4, 4) and disparities (P,); ``tracked``:
     the reference keyframe id and the relative pose ``T_cw T_cw(ref)^-1`` (4, 4) its frame was tracked at, when
-    it was made from a tracked frame (module docstring, final poses). The image is dropped (None) at the first
-    frame after the keyframe left the window: only window keyframes are matched, and loop closure and the mapper
-    took it when the keyframe was new, so a long run does not keep every keyframe's pixels."""
+    it was made from a tracked frame (module docstring, final poses).
+
+    Image and disparities are dropped (None) at the first frame after the keyframe left the window: only window
+    keyframes are matched and adjusted, and loop closure and the mapper took them while it was there, so a long
+    run does not keep every keyframe's pixels and depths. ``revision`` counts the disparities' re-estimates
+    (:meth:`set_disparities`); ``depth_scale`` is the product of the uniform depth scalings applied since
+    creation (:meth:`rescale_depth`: world alignment, loop corrections). A consumer that took the disparities at
+    ``(revision, s)`` knows, while the revision is unchanged, that they are now its copy times ``s /
+    depth_scale``, without keeping them (:class:`vigs_core.frontend.keyframe_changes.SentKeyframes`)."""
 
     id: int
     t_ns: int
     image: np.ndarray | None
     pose: torch.Tensor
-    disp: torch.Tensor
+    disp: torch.Tensor | None
     tracked: tuple[int, torch.Tensor] | None = None
+    revision: int = 0
+    depth_scale: float = 1.0
+
+    def set_disparities(self, disp: torch.Tensor) -> None:
+        """New estimates of the disparities (P,): a new revision."""
+        self.disp = disp
+        self.revision += 1
+
+    def rescale_depth(self, c: float) -> None:
+        """Depths scaled by ``c`` (disparities by ``1 / c``), the revision kept; applies to a settled keyframe
+        too (its disparities are gone, ``depth_scale`` carries the scaling)."""
+        if self.disp is not None:
+            self.disp = self.disp / c
+        self.depth_scale *= float(c)
 
 
 class PoseRows:
@@ -272,10 +292,10 @@ class DenseOdometry:
         (new keyframe, BA) that may follow: a live caller publishes odometry without waiting for the BA. The
         returned pose is the causal one after that work (it differs from the tracked one on keyframes).
         Called during the keyframe work (from ``interleave``), the frame is tracked only (module docstring)."""
-        if not self.in_keyframe_work:   # the callers of the previous frame have taken the new keyframes' images
-            for k in self._left_window:
+        if not self.in_keyframe_work:   # the callers of the previous frame have taken what they need of the
+            for k in self._left_window:  # keyframes that left the window (Keyframe)
                 if k in self.keyframes:
-                    self.keyframes[k].image = None
+                    self.keyframes[k].image = self.keyframes[k].disp = None
             self._left_window.clear()
         frame = _Frame(int(t_ns), self._pose_rows)
         self.frames.append(frame)
@@ -647,7 +667,8 @@ class DenseOdometry:
                             between=self._yield_point)
         self._after_ba(ids, res)
         for n, k in enumerate(ids):   # copies: a view would keep the whole window's solution alive per keyframe
-            self.keyframes[k].pose, self.keyframes[k].disp = res.poses[n].clone(), res.disps[n].clone()
+            self.keyframes[k].pose = res.poses[n].clone()
+            self.keyframes[k].set_disparities(res.disps[n].clone())
         self.ba_calls += 1
         self._toc("ba", t0)
 

@@ -65,7 +65,8 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
         poses = se3_inverse(T_WC)
         for k, pose, T, scale in zip(ids, poses.unbind(0), T_WC.unbind(0), c.tolist()):
             kf = odometry.keyframes[k]
-            kf.pose, kf.disp = pose, kf.disp / scale
+            kf.pose = pose
+            kf.rescale_depth(scale)
             updates[k] = (T, scale)
     odometry.scale_relative_translations({k: scale for k, (_, scale) in updates.items()})
     return updates

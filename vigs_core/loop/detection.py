@@ -48,34 +48,40 @@ class KeyframeView:
     Attributes:
         id: keyframe id (increasing with time).
         image: (H, W) uint8 grey image (undistorted, the frontend's input); None for a keyframe the detector has
-            already seen as new (:meth:`LoopDetector.detect` keeps the image, spilled to disk when old), so the
-            callers' views need not keep it.
+            already seen (:meth:`LoopDetector.keep` keeps the image, spilled to disk when old), so the callers'
+            views need not keep it.
         T_WC: (4, 4) float64 current world-from-camera pose estimate (rigid).
         disp: (P,) disparities (inverse depths) of the reduced grid pixels, inverse map units (<= 0 = unknown):
-            the frontend's own tensor, shared rather than copied (its depths are :attr:`depth`).
+            the frontend's own tensor, shared rather than copied (its depths are :attr:`depth`); None where the
+            detector already holds this revision of them (:meth:`LoopDetector.depth`).
         unit: product of the depth scales applied to this keyframe by loop corrections before the view was
             taken (its depth units relative to the original ones; see :meth:`KeyframePoseGraph.build`).
+        revision, depth_scale: the frontend keyframe's disparity revision and the product of the uniform depth
+            scalings applied to it (:class:`vigs_core.frontend.odometry.Keyframe`): disparities of the same
+            revision taken at ``depth_scale`` ``s`` are now ``s / depth_scale`` times their values then.
     """
 
     id: int
     image: np.ndarray | None
     T_WC: torch.Tensor
-    disp: torch.Tensor
+    disp: torch.Tensor | None
     unit: float = 1.0
+    revision: int = 0
+    depth_scale: float = 1.0
 
     @classmethod
     def from_depth(cls, id: int, image: np.ndarray | None, T_WC: torch.Tensor, depth: torch.Tensor,
                    unit: float = 1.0) -> "KeyframeView":
         """The view of a keyframe given by its grid depths (P,) (0 = unknown)."""
-        return cls(id, image, T_WC, _reciprocal(torch.as_tensor(depth)), unit)
+        return cls(id, image, T_WC, positive_reciprocal(torch.as_tensor(depth)), unit)
 
     @property
     def depth(self) -> torch.Tensor:
-        """(P,) float64 depths of the grid pixels, map units (0 = unknown)."""
-        return _reciprocal(self.disp)
+        """(P,) float64 depths of the grid pixels, map units (0 = unknown); the view must carry ``disp``."""
+        return positive_reciprocal(self.disp)
 
 
-def _reciprocal(x: torch.Tensor) -> torch.Tensor:
+def positive_reciprocal(x: torch.Tensor) -> torch.Tensor:
     """``1 / x`` in float64 where ``x > 0``, else 0: depths from disparities and back, unknown staying unknown."""
     x = x.to(F64)
     return torch.where(x > 0, 1.0 / x.clamp_min(1e-12), 0.0)
@@ -151,6 +157,8 @@ class LoopDetector:
         self.verification = verification or LoopVerificationConfig()
         self._thumbs: dict[int, np.ndarray] = {}
         self._images = SpillStore(images, "loop-images")
+        self._disps = SpillStore(images, "loop-depths")   # id -> disparities (P,) of the revision in _revisions
+        self._revisions: dict[int, tuple[int, float]] = {}   # id -> (revision, depth_scale) of the kept ones
         self._coords = self.grid.coords()   # (P, 2) grid pixels: the targets of zero flow
         self._last_loop_kf: int | None = None
 
@@ -163,9 +171,27 @@ class LoopDetector:
         """The view's image, or the one kept when the keyframe was new (KeyError for a keyframe never seen)."""
         return kf.image if kf.image is not None else self._images.get(kf.id)[0]
 
+    def keep(self, kf: KeyframeView) -> None:
+        """Keep what ``kf`` carries for later views without it: its image (once) and its disparities (when of
+        a revision not kept yet)."""
+        if kf.image is not None and kf.id not in self._images:
+            self._images.put(kf.id, kf.image)
+        if kf.disp is not None and self._revisions.get(kf.id, (None,))[0] != kf.revision:
+            self._disps.put(kf.id, kf.disp.to(F64).numpy())
+            self._revisions[kf.id] = (kf.revision, kf.depth_scale)
+
+    def depth(self, kf: KeyframeView) -> torch.Tensor:
+        """(P,) float64 grid depths of the view, from its disparities or, without them, from the kept ones
+        rescaled to the view's depth scale (KeyError for a keyframe whose disparities were never given)."""
+        if kf.disp is not None:
+            return kf.depth
+        _, scale = self._revisions[kf.id]
+        return positive_reciprocal(torch.from_numpy(self._disps.get(kf.id)[0])) * (kf.depth_scale / scale)
+
     def close(self) -> None:
-        """Drop the kept images (and their spill folder)."""
+        """Drop the kept images and disparities (and their spill folders)."""
         self._images.close()
+        self._disps.close()
 
     def candidates(self, new: KeyframeView, history: Sequence[KeyframeView]) -> list[KeyframeView]:
         """Keyframes of ``history`` old enough and within the orientation bound, best thumbnail match first,
@@ -209,10 +235,11 @@ class LoopDetector:
 
     def detect(self, new: KeyframeView, history: Sequence[KeyframeView]) -> LoopDecision:
         """Look for a loop between ``new`` and the keyframes of ``history`` (all earlier keyframes, any order).
-        Keeps ``new``'s image and thumbnail for later calls, where its view may come without the image."""
+        Keeps what the views carry (:meth:`keep`) and ``new``'s thumbnail for later calls, where the views may
+        come without image and disparities."""
         cfg = self.detection
-        if new.image is not None:
-            self._images.put(new.id, new.image)
+        for kf in (new, *history):
+            self.keep(kf)
         self._thumb(new)
         decision = LoopDecision()
         if self._last_loop_kf is not None and new.id - self._last_loop_kf < cfg.min_keyframes_between_loops:
@@ -229,7 +256,8 @@ class LoopDetector:
             ba, _ = self._correspondences(old, new, 2.0 * self._coords - ab.target.numpy())
             ab, _ = self._correspondences(new, old, 2.0 * self._coords - ba.target.numpy())
             # a = old, b = new: Z = S_old^{-1} S_new
-            result = estimate_relative_sim3(old.depth, new.depth, ba, ab, self.grid, self.intr, self.verification)
+            result = estimate_relative_sim3(self.depth(old), self.depth(new), ba, ab, self.grid, self.intr,
+                                            self.verification)
             reason = result.reason if not result.accepted else self.drift_check(old, new, result.relative, history)
             if reason:
                 decision.rejected[old.id] = reason

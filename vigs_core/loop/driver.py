@@ -17,8 +17,9 @@ visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1
 
 Detection, the odometry-edge information and PGBA run on the loop-closure worker: a child process by default
 (:mod:`vigs_core.loop.process`, ``LoopConfig.process``), else a thread; the tracking thread only builds keyframe
-views (cached for keyframes that left the frontend's window, sent to a child process once per change) and
-applies corrections.
+views (cached, sent to a child process once per change; image and disparities only when new and the disparities
+once more as the keyframe leaves the frontend's window, :meth:`LoopClosureDriver._current_views`) and applies
+corrections.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from vigs_core.geometry import se3_inverse
 from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrections_for
 from vigs_core.loop.closure import LoopClosure
 from vigs_core.loop.config import LoopConfig, LoopVerificationConfig
-from vigs_core.loop.detection import KeyframeView
+from vigs_core.loop.detection import KeyframeView, positive_reciprocal
 from vigs_core.loop.pgba import PGBAResult
 from vigs_core.loop.process import LoopClosureProcess
 from vigs_core.loop.two_view import TwoViewCorrespondences, edge_information
@@ -43,14 +44,16 @@ from vigs_core.solver import Intrinsics
 F64 = torch.float64
 
 
-def keyframe_views(kfs: list[Any], units: list[float]) -> list[KeyframeView]:
+def keyframe_views(kfs: list[Any], units: list[float], images: list[bool], disps: list[bool]) -> list[KeyframeView]:
     """The :class:`KeyframeView` of frontend keyframes (``pose`` world->camera, ``disp`` grid inverse depth, shared
-    with the view) whose depth units are ``units`` (see :class:`KeyframeView`), the poses inverted in one batch (a
-    loop correction changes every keyframe at once)."""
+    with the view, ``revision``, ``depth_scale``) whose depth units are ``units`` (see :class:`KeyframeView`),
+    with the image where ``images`` and the disparities where ``disps``, the poses inverted in one batch (a loop
+    correction changes every keyframe at once)."""
     if not kfs:
         return []
     T_WC = se3_inverse(torch.stack([kf.pose for kf in kfs]).to(F64))
-    return [KeyframeView(int(kf.id), kf.image, T, kf.disp, unit) for kf, T, unit in zip(kfs, T_WC.unbind(0), units)]
+    return [KeyframeView(int(kf.id), kf.image if i else None, T, kf.disp if d else None, unit, kf.revision,
+                         kf.depth_scale) for kf, T, unit, i, d in zip(kfs, T_WC.unbind(0), units, images, disps)]
 
 
 @dataclass
@@ -107,8 +110,9 @@ class LoopClosureDriver:
                                        odometry.intr)
         self.corrections_applied = 0
         self._registered: list[int] = []
-        # cached views, with the keyframe's pose and disparity tensors they were built from
-        self._views: dict[int, tuple[torch.Tensor, torch.Tensor, KeyframeView]] = {}
+        # cached views (without image and disparities), with the keyframe's pose tensor, disparity revision,
+        # depth scale and whether it was in the frontend's window when they were built
+        self._views: dict[int, tuple[torch.Tensor, int, float, bool, KeyframeView]] = {}
 
     def step(self) -> PGBAResult | None:
         """Apply a finished PGBA, register new keyframes, start PGBA if a loop waits; returns the applied result."""
@@ -118,6 +122,7 @@ class LoopClosureDriver:
         new = [k for k in sorted(self.odometry.keyframes) if not self._registered or k > self._registered[-1]]
         if new:
             views = self._current_views()
+            carrying = [k for k, v in views.items() if v.image is not None or v.disp is not None]
             for k in new:
                 history = [views[i] for i in self._registered]
                 prev = self._registered[-1] if self._registered else None
@@ -125,11 +130,14 @@ class LoopClosureDriver:
                 a = views.get(prev)
                 b = views[k]
                 info = None if a is None or (prev, k) not in edges else OdometryEdgeInformation(
-                    prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), a.depth.numpy(), b.depth.numpy(),
+                    prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), self._depth(prev), self._depth(k),
                     edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
                     self.odometry.intr, self.config.verification)
                 self.closure.add_keyframe(b, history, info)
                 self._registered.append(k)
+                for i in [i for i in carrying if i <= k]:   # handed over: not sent again in this step
+                    views[i] = self._views[i][4]
+                    carrying.remove(i)
         if self.closure.pending:
             self._start_pgba()
         return result
@@ -171,16 +179,33 @@ class LoopClosureDriver:
         return updates
 
     def _current_views(self) -> dict[int, KeyframeView]:
-        """Views of all keyframes, rebuilt where the keyframe's pose or disparity changed since (BA in the
-        window, the visual-inertial world alignment that re-expresses every keyframe, a loop correction: the
-        frontend replaces these tensors, it never edits them in place), cached otherwise."""
-        stale = [kf for k, kf in self.odometry.keyframes.items()
-                 if k not in self._views or self._views[k][0] is not kf.pose or self._views[k][1] is not kf.disp]
-        last = self._registered[-1] if self._registered else -1
-        for kf, view in zip(stale, keyframe_views(stale, [self.closure.unit(kf.id) for kf in stale])):
-            # the detector keeps the image of a registered keyframe: a view need not hold it past registration
-            self._views[kf.id] = (kf.pose, kf.disp, view if kf.id > last else replace(view, image=None))
-        return {k: self._views[k][2] for k in self.odometry.keyframes}
+        """Views of all keyframes, rebuilt where the keyframe changed since (BA in the window, the
+        visual-inertial world alignment that re-expresses every keyframe, a loop correction: the frontend
+        replaces the pose tensor, never edits it) or left the frontend's window, cached otherwise.
+
+        A view carries image and disparities when new, and the disparities again when the keyframe has just left
+        the window (their last revision: the frontend drops them at the next frame). The detector keeps what
+        views carry (:meth:`LoopDetector.keep`), so the cache holds views without either."""
+        window = set(self.odometry.graph.keyframes)
+        stale, images, disps = [], [], []
+        for k, kf in self.odometry.keyframes.items():
+            cached = self._views.get(k)
+            state = (kf.revision, kf.depth_scale, k in window)
+            if cached is None or cached[0] is not kf.pose or cached[1:4] != state:
+                stale.append(kf)
+                images.append(cached is None)
+                disps.append(cached is None or (k not in window and kf.disp is not None))
+        views = {}
+        units = [self.closure.unit(kf.id) for kf in stale]
+        for kf, view in zip(stale, keyframe_views(stale, units, images, disps)):
+            views[kf.id] = view
+            self._views[kf.id] = (kf.pose, kf.revision, kf.depth_scale, kf.id in window,
+                                  replace(view, image=None, disp=None))
+        return {k: views[k] if k in views else self._views[k][4] for k in self.odometry.keyframes}
+
+    def _depth(self, k: int) -> np.ndarray:
+        """(P,) float64 grid depths of window keyframe ``k`` (0 = unknown), from the frontend's disparities."""
+        return positive_reciprocal(self.odometry.keyframes[k].disp).numpy()
 
     def _metric(self) -> bool:
         vio = getattr(self.odometry, "vio", None)

@@ -11,11 +11,11 @@ tracking keeps its core and loop closure uses what is left.
 
 Protocol (one duplex pipe, messages handled in order by the child, an ``inline`` :class:`LoopClosure` there):
 
-* ``("views", [(id, T_WC, disp or None, unit, image or None)])``: keyframe views new or changed since last
-  sent. The image only with a keyframe's first view (it never changes). The disparities with the first view and
-  then only once the keyframe is old enough to be a loop candidate (``min_keyframe_gap``): the window's bundle
-  adjustment changes the newest keyframes' disparities at every keyframe, and detection reads only the new
-  keyframe's and the candidates' depths (None: keep the disparities the child has);
+* ``("views", [(id, T_WC, disp or None, unit, image or None, revision, depth_scale)])``: keyframe views new or
+  changed since last sent, with image and disparities where the view carries them (its first view, and the
+  disparities' last revision when the keyframe left the frontend's window: :meth:`LoopClosureDriver.
+  _current_views`). The child's detector keeps them (:meth:`LoopDetector.keep`, spilled to disk when old); the
+  uniform depth scalings that follow travel as ``depth_scale``;
 * ``("keyframe", id, history_ids, information)``: :meth:`LoopClosure.add_keyframe` on the child's views; the
   information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
 * ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
@@ -62,19 +62,25 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
 
 
 def _serve(conn: Any, closure: LoopClosure) -> None:
-    views: dict[int, KeyframeView] = {}   # without images once detected: the detector keeps those
+    views: dict[int, KeyframeView] = {}   # without image and disparities once detected: the detector keeps those
+    carrying: set[int] = set()             # views that still carry them
     covered = 0
     for msg in messages(conn):
         kind = msg[0]
         try:
             if kind == "views":
-                for k, T_WC, disp, unit, image in msg[1]:
+                for k, T_WC, disp, unit, image, revision, depth_scale in msg[1]:
                     views[k] = KeyframeView(k, image, torch.from_numpy(T_WC),
-                                            views[k].disp if disp is None else torch.from_numpy(disp), unit)
+                                            None if disp is None else torch.from_numpy(disp), unit, revision,
+                                            depth_scale)
+                    if image is not None or disp is not None:
+                        carrying.add(k)
             elif kind == "keyframe":
                 _, k, history, information = msg
                 closure.add_keyframe(views[k], [views[i] for i in history], information)
-                views[k] = replace(views[k], image=None)
+                for i in carrying:
+                    views[i] = replace(views[i], image=None, disp=None)
+                carrying.clear()
             elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
                                                            msg[2]):
                 send(conn, ("result", None))
@@ -108,7 +114,7 @@ class LoopClosureProcess:
         self.stats = LoopStats()
         self.units: dict[int, float] = {}
         self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure")
-        self._sent: dict[int, tuple[KeyframeView, torch.Tensor]] = {}   # id -> view, disparities as last sent
+        self._sent: dict[int, torch.Tensor] = {}   # id -> the pose tensor of the view last sent
         self._found = 0
         self._covered = 0
         self._in_flight = False
@@ -151,17 +157,14 @@ class LoopClosureProcess:
     # ------------------------------------------------------------------ LoopClosure's caller side
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
                      odometry_information: InformationSource = None) -> None:
-        """Send the views not yet in the child (or changed since; disparities only where detection reads them,
-        see the module docstring) and queue ``new`` for detection there."""
-        candidate_ids = new.id - self.config.detection.min_keyframe_gap
-        changed = []   # (id, T_WC, disp or None, unit, image or None)
+        """Send the views not yet in the child or changed since (with what they carry, see the module docstring)
+        and queue ``new`` for detection there."""
+        changed = []   # (id, T_WC, disp or None, unit, image or None, revision, depth_scale)
         for v in (*history, new):
-            view, disp = self._sent.get(v.id, (None, None))
-            send_disp = view is None or (v.id <= candidate_ids and disp is not v.disp)
-            if view is not v or send_disp:
-                changed.append((v.id, host(v.T_WC), host(v.disp) if send_disp else None, v.unit,
-                                v.image if view is None else None))
-                self._sent[v.id] = (v, v.disp if send_disp else disp)
+            if self._sent.get(v.id) is not v.T_WC or v.disp is not None or v.image is not None:
+                changed.append((v.id, host(v.T_WC), None if v.disp is None else host(v.disp), v.unit, v.image,
+                                v.revision, v.depth_scale))
+                self._sent[v.id] = v.T_WC
         if changed:
             self._post(("views", changed))
         self._post(("keyframe", new.id, [v.id for v in history], odometry_information))

@@ -12,9 +12,9 @@ Per processed frame (:meth:`OnlineMapping.step`, tracking thread, only queue ope
   confident in that cell, or beyond ``max_depth_ratio`` times the keyframe's median depth.
 * **Pose updates**: every sent keyframe whose pose moved by more than ``pose_tolerance`` (BA over the window,
   the visual-inertial world alignment that rescales and gravity-aligns everything) is sent in one batch
-  ``update_keyframe_poses({k: T_WC}, {k: c_k})`` with the depth scale ``c_k = median(d_sent / d_now)`` over
-  the grid cells (the change of the keyframe's depths since they were last sent; ``c_k = s`` for a world
-  rescaled by ``s``). Loop-closure corrections go to the mapper through
+  ``update_keyframe_poses({k: T_WC}, {k: c_k})`` with the depth scale ``c_k``, the growth of the keyframe's
+  depths since they were last sent (``c_k = s`` for a world rescaled by ``s``;
+  :class:`~vigs_core.frontend.keyframe_changes.SentKeyframes`). Loop-closure corrections go to the mapper through
   :class:`~vigs_core.loop.LoopClosureDriver` (``mapper=``) and are recorded here by :meth:`on_correction`
   so they are not sent twice.
 
@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from vigs_core.frontend.keyframe_changes import SentKeyframes
 from vigs_core.geometry import se3_inverse, se3_log
 from vigs_core.mapping import GaussianMapper, MapperConfig
 from vigs_core.mapping.process import MapperProcess
@@ -119,8 +120,7 @@ class OnlineMapping:
         else:
             self.mapper = GaussianMapper(config.mapper, camera, device)
             self.mapper.run_async()
-        self._sent: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> (T_WC, disp) as last sent
-        self._seen: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # kf id -> the frontend's pose, disp then
+        self._sent = SentKeyframes()                                    # what the mapper has of each keyframe
         self._eval_images: dict[int, np.ndarray] = {}                   # frame index -> processed image
         self._eval_offered = 0                                          # frames offered to the sample so far
         self._eval_rng = random.Random(0)
@@ -148,7 +148,8 @@ class OnlineMapping:
         mapper; record the corrected poses and disparities as sent."""
         for k in updates:
             if k in self._sent:
-                self._sent[k] = self._current(k)
+                kf = self.odometry.keyframes[k]
+                self._sent.record(kf, se3_inverse(kf.pose.to(F64)))
 
     def finish(self, drain: bool = True, interrupted_drain_s: float = 10.0) -> None:
         """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain
@@ -221,11 +222,6 @@ class OnlineMapping:
         self.mapper.close()
 
     # ------------------------------------------------------------------ internals
-    def _current(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        kf = self.odometry.keyframes[k]
-        self._seen[k] = (kf.pose, kf.disp)
-        return se3_inverse(kf.pose.to(F64)), kf.disp.to(F64)   # no copy: the frontend replaces, never edits
-
     def _depth(self, k: int, disp: torch.Tensor) -> np.ndarray:
         """Grid depth (rows, cols) of keyframe ``k`` from its disparities (P,), 0 where invalid."""
         grid = self.odometry.grid
@@ -241,33 +237,27 @@ class OnlineMapping:
         return z.reshape(grid.rows, grid.cols).astype(np.float32)
 
     def _send_keyframe(self, k: int) -> None:
-        T_WC, disp = self._current(k)
         kf = self.odometry.keyframes[k]
-        self.mapper.add_keyframe(k, T_WC, kf.image, self._depth(k, disp), kf.t_ns)
-        self._sent[k] = (T_WC, disp)
+        T_WC = se3_inverse(kf.pose.to(F64))
+        self.mapper.add_keyframe(k, T_WC, kf.image, self._depth(k, kf.disp.to(F64)), kf.t_ns)
+        self._sent.record(kf, T_WC)
 
     def _send_pose_updates(self) -> None:
         poses, scales = {}, {}
-        for k, (T_old, d_old) in self._sent.items():
+        for k in self._sent.ids():
             kf = self.odometry.keyframes.get(k)
-            if kf is None or (self._seen[k][0] is kf.pose and self._seen[k][1] is kf.disp):
-                continue   # the frontend replaces these tensors when it changes them (BA, alignment, loop)
-            T_new, d_new = self._current(k)
-            c = depth_scale_change(d_old, d_new)
+            change = None if kf is None else self._sent.change(kf)
+            if change is None:
+                continue
+            T_old, c = change
+            T_new = se3_inverse(kf.pose.to(F64))
             moved = float(se3_log(torch.linalg.inv(T_old) @ T_new).norm())
             if moved > self.config.pose_tolerance or abs(np.log(c)) > self.config.pose_tolerance:
                 poses[k], scales[k] = T_new, c
-                self._sent[k] = (T_new, d_new)
+                self._sent.record(kf, T_new)
         if poses:
             self.mapper.update_keyframe_poses(poses, scales)
             self.pose_update_batches += 1
-
-
-def depth_scale_change(d_old: torch.Tensor, d_new: torch.Tensor) -> float:
-    """The scale ``c = median(d_old / d_new)`` by which a keyframe's depths grew between two versions of its
-    disparities (cells positive in both; 1 without any): ``c = s`` for a world rescaled by ``s``."""
-    ok = (d_old > 0) & (d_new > 0)
-    return float(torch.median(d_old[ok] / d_new[ok])) if bool(ok.any()) else 1.0
 
 
 def _rounded(metrics: dict) -> dict:

@@ -253,7 +253,8 @@ class VisualInertialOdometry(DenseOdometry):
     def _apply_alignment(self, al: WorldAlignment) -> None:
         """Re-express the whole map in the metric gravity-aligned world (keyframes, disparities, frames)."""
         for kf in self.keyframes.values():
-            kf.pose, kf.disp = al.pose(kf.pose), al.disparity(kf.disp)
+            kf.pose = al.pose(kf.pose)
+            kf.rescale_depth(al.scale)
         self.scale_relative_translations(dict.fromkeys(self.keyframes, al.scale))
         for f in self.frames:
             if (odom := f.odom) is not None:

@@ -1,0 +1,75 @@
+"""What a consumer of the frontend's keyframes (the mapping feed, the ROS frontend's keyframe updates) last sent of
+each keyframe, and how much the keyframe has changed since: the pose, and the factor ``c`` by which its depths grew.
+
+The frontend replaces a keyframe's pose tensor when it changes it (never edits it), re-estimates its disparities
+only while it is in the window (a new :attr:`~vigs_core.frontend.odometry.Keyframe.revision`) and afterwards
+only scales its depths uniformly (:attr:`~vigs_core.frontend.odometry.Keyframe.depth_scale`). So a keyframe is
+unchanged while its pose tensor, revision and depth scale are; within one revision ``c`` is the ratio of depth
+scales; across revisions it is the median per-cell ratio of the disparities (:func:`depth_scale_change`). The
+disparities of the reference are kept only until the keyframe settles (its disparities dropped by the
+frontend), so a long run keeps no per-keyframe arrays here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import torch
+
+
+def depth_scale_change(d_old: torch.Tensor, d_new: torch.Tensor) -> float:
+    """The scale ``c = median(d_old / d_new)`` by which a keyframe's depths grew between two versions of its
+    disparities (cells positive in both; 1 without any): ``c = s`` for a world rescaled by ``s``."""
+    ok = (d_old > 0) & (d_new > 0)
+    return float(torch.median(d_old[ok] / d_new[ok])) if bool(ok.any()) else 1.0
+
+
+@dataclass
+class _Reference:
+    """``T_WC``: the pose last sent (as the consumer gave it); ``disp`` (revision ``revision``, at the keyframe's depth scale
+    ``depth_scale`` then; None once settled) with ``ratio`` = its depths / the depths last sent; ``seen``: the
+    keyframe's (pose tensor, revision, depth scale) last compared."""
+
+    T_WC: Any
+    disp: torch.Tensor | None
+    revision: int
+    depth_scale: float
+    ratio: float
+    seen: tuple[torch.Tensor, int, float]
+
+
+class SentKeyframes:
+    """Keyframe id -> what was last sent of it (module docstring). Keyframes are the frontend's
+    :class:`~vigs_core.frontend.odometry.Keyframe` objects (``id``, ``pose``, ``disp``, ``revision``,
+    ``depth_scale``)."""
+
+    def __init__(self) -> None:
+        self._refs: dict[int, _Reference] = {}
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._refs
+
+    def ids(self) -> Iterator[int]:
+        return iter(list(self._refs))
+
+    def record(self, kf: Any, T_WC: Any) -> None:
+        """``kf`` was sent now, at pose ``T_WC`` (4, 4; a tensor or an array) and its current depths."""
+        self._refs[kf.id] = _Reference(T_WC, kf.disp, kf.revision, kf.depth_scale, 1.0,
+                                       (kf.pose, kf.revision, kf.depth_scale))
+
+    def change(self, kf: Any) -> tuple[Any, float] | None:
+        """None when ``kf`` is unchanged since the last call (or :meth:`record`); else the pose last sent and
+        ``c`` = current depths / depths last sent."""
+        ref = self._refs[kf.id]
+        if kf.disp is None:
+            ref.disp = None   # settled: no revision follows
+        seen = (kf.pose, kf.revision, kf.depth_scale)
+        if seen[0] is ref.seen[0] and seen[1:] == ref.seen[1:]:
+            return None
+        ref.seen = seen
+        if kf.revision != ref.revision:
+            if ref.disp is None or kf.disp is None:
+                raise RuntimeError(f"keyframe {kf.id}: disparities re-estimated after it left the window")
+            ref.ratio *= depth_scale_change(ref.disp, kf.disp)
+            ref.disp, ref.revision, ref.depth_scale = kf.disp, kf.revision, kf.depth_scale
+        return ref.T_WC, ref.ratio * kf.depth_scale / ref.depth_scale
