@@ -19,6 +19,7 @@ import pytest
 from ros_bags import SAMPLE_BAG
 
 from vigs_core.eval import evaluate_trajectory
+from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.system import OdometryStream, PipelineConfig
 from vigs_core.system.pipeline import groundtruth_at, poses_to_trajectory
 from vigs_core.system.sources import open_input
@@ -62,6 +63,28 @@ def stream_run(imu: ImuSamples) -> tuple[float, list[str], OdometryStream]:
 def clean():
     imu = open_input(SAMPLE_BAG).imu
     return imu, stream_run(imu)
+
+
+def test_velocities_of_settled_frames_do_not_need_the_imu_behind_the_window(clean):
+    """A frame's velocity increment is kept when its keyframe leaves the window (once the map is metric), so
+    velocity.txt does not need the IMU behind the window, and the streamed record is bounded (120 s by default):
+    with the record cut at the window, every frame's velocity is the same."""
+    imu, (_, _, stream) = clean
+    odo = stream.odometry
+    assert stream.imu.config.max_age_s == 120.0
+    t, v = odo.frame_velocities()
+    # the keyframes not settled yet (the window, and one that left it in the last frame) and a sample before
+    start = min(kf.t_ns for kf in odo.keyframes.values() if kf.disp is not None)
+    keep = imu.t_ns >= start - 10**7
+    whole = odo.vio.imu_buffer
+    odo.vio.imu_buffer = ImuBuffer.of(ImuSamples(imu.t_ns[keep], imu.gyro[keep], imu.acc[keep]))
+    try:
+        t_cut, v_cut = odo.frame_velocities()
+    finally:
+        odo.vio.imu_buffer = whole
+    assert np.array_equal(t, t_cut) and (t < start).sum() > 300
+    assert np.isfinite(v.numpy()).sum() > 0.9 * v.numel()
+    np.testing.assert_allclose(v_cut.numpy(), v.numpy(), atol=1e-12)
 
 
 def test_an_imu_gap_is_not_integrated_across(clean):

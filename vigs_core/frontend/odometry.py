@@ -175,43 +175,61 @@ class Keyframe:
         self.depth_scale *= float(c)
 
 
-class PoseRows:
-    """Append-only storage of the frames' poses: two (4, 4) float64 slots per frame (``rel`` and ``odom``) in
-    chunks of ``chunk`` frames, where two tensors of their own cost a frame about 1.2 KB more (a long run keeps
-    every frame). An unset slot is NaN."""
+class FrameRows:
+    """Per-frame float64 records of one ``shape``, in chunks of ``chunk`` frames (a long run keeps every frame,
+    and an array of its own costs a frame hundreds of bytes more); an unset record is NaN. Rows are the frames'
+    indices in :class:`PoseRows`, which hands them out."""
 
-    def __init__(self, chunk: int = 4096) -> None:
+    def __init__(self, shape: tuple[int, ...], chunk: int = 4096) -> None:
+        self.shape = shape
         self._chunk = chunk
         self._blocks: list[np.ndarray] = []
+
+    def record(self, row: int) -> np.ndarray:
+        """The record of ``row`` (a view: writing to it stores), chunks added as needed."""
+        block, offset = divmod(row, self._chunk)
+        while len(self._blocks) <= block:
+            self._blocks.append(np.full((self._chunk, *self.shape), np.nan))
+        return self._blocks[block][offset]
+
+    def take(self, rows: np.ndarray) -> np.ndarray:
+        """Copies (M, *shape) of the records of ``rows`` (M,), NaN where unset: one gather per chunk."""
+        rows = np.asarray(rows, dtype=np.int64)
+        out = np.full((len(rows), *self.shape), np.nan)
+        block, offset = np.divmod(rows, self._chunk)
+        for b in np.unique(block[block < len(self._blocks)]):
+            sel = block == b
+            out[sel] = self._blocks[b][offset[sel]]
+        return out
+
+
+class PoseRows:
+    """Append-only storage of the frames' poses: two (4, 4) float64 slots per frame (``rel`` and ``odom``) in a
+    :class:`FrameRows` (two tensors of their own cost a frame about 1.2 KB more). An unset slot is NaN."""
+
+    def __init__(self, chunk: int = 4096) -> None:
+        self._records = FrameRows((2, 4, 4), chunk)
         self._rows = 0
 
     def add(self) -> int:
         """A new frame's row index, both slots unset."""
-        if self._rows % self._chunk == 0:
-            self._blocks.append(np.full((self._chunk, 2, 4, 4), np.nan))
+        self._records.record(self._rows)
         self._rows += 1
         return self._rows - 1
 
     def get(self, row: int, slot: int) -> torch.Tensor | None:
         """A copy of the pose in ``slot`` of ``row``, or None if unset."""
-        pose = self._blocks[row // self._chunk][row % self._chunk, slot]
+        pose = self._records.record(row)[slot]
         return None if np.isnan(pose[3, 3]) else torch.from_numpy(pose.copy())
 
     def take(self, rows: np.ndarray, slot: int) -> np.ndarray:
-        """Copies (M, 4, 4) of the poses in ``slot`` of ``rows`` (M,), NaN where unset: one gather per chunk
-        instead of one copy per frame (the outputs read every frame's pose)."""
-        rows = np.asarray(rows, dtype=np.int64)
-        out = np.empty((len(rows), 4, 4))
-        block, offset = np.divmod(rows, self._chunk)
-        for b in np.unique(block):
-            sel = block == b
-            out[sel] = self._blocks[b][offset[sel], slot]
-        return out
+        """Copies (M, 4, 4) of the poses in ``slot`` of ``rows`` (M,), NaN where unset (the outputs read every
+        frame's pose)."""
+        return self._records.take(rows)[:, slot]
 
     def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
         """Store ``pose`` (4, 4) as float64 in ``slot`` of ``row`` (None unsets it)."""
-        self._blocks[row // self._chunk][row % self._chunk, slot] = (
-            np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy())
+        self._records.record(row)[slot] = np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy()
 
 
 class _PoseSlot:
@@ -293,10 +311,11 @@ class DenseOdometry:
         returned pose is the causal one after that work (it differs from the tracked one on keyframes).
         Called during the keyframe work (from ``interleave``), the frame is tracked only (module docstring)."""
         if not self.in_keyframe_work:   # the callers of the previous frame have taken what they need of the
-            for k in self._left_window:  # keyframes that left the window (Keyframe)
-                if k in self.keyframes:
-                    self.keyframes[k].image = self.keyframes[k].disp = None
+            settled = [k for k in self._left_window if k in self.keyframes]   # (Keyframe)
+            for k in settled:
+                self.keyframes[k].image = self.keyframes[k].disp = None
             self._left_window.clear()
+            self._on_settled(settled)
         frame = _Frame(int(t_ns), self._pose_rows)
         self.frames.append(frame)
         outer, self._on_pose = self._on_pose, on_pose   # a nested frame's callback is its own
@@ -314,6 +333,9 @@ class DenseOdometry:
         finally:
             self._on_pose = outer
         return pose
+
+    def _on_settled(self, ids: list[int]) -> None:
+        """Hook: keyframes ``ids`` left the window (their frames are final up to later corrections)."""
 
     def _pose_before_initialization(self, t_ns: int) -> torch.Tensor | None:
         """Hook: a pose for a frame the front end could not pose yet (e.g. held still); None: no pose."""

@@ -60,12 +60,13 @@ class OdometryStream:
         config: pipeline settings (processing size, threads, odometry, IMU fusion).
         T_bc: (4, 4) camera pose in the body (IMU) frame.
         imu_noise: IMU noise densities; None: no IMU, the odometry is vision-only.
-        imu_history_s: IMU kept behind the newest sample (s); None keeps all (an offline run reports every
-            frame's velocity at the end and needs the whole record).
+        imu_history_s: IMU kept behind the newest sample (s): what the estimator reads lies within the window
+            and the initialisation's keyframes, and a frame's velocity increment is kept when its keyframe leaves
+            the window (:meth:`VisualInertialOdometry.frame_velocities`); None keeps all.
     """
 
     def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray | None = None,
-                 imu_noise: ImuNoise | None = None, imu_history_s: float | None = None) -> None:
+                 imu_noise: ImuNoise | None = None, imu_history_s: float | None = 120.0) -> None:
         torch.set_num_threads(config.torch_threads)
         cv2.setNumThreads(config.torch_threads)
         self.config = config

@@ -55,7 +55,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from vigs_core.frontend.odometry import DenseOdometry, Keyframe, OdometryConfig
+from vigs_core.frontend.odometry import DenseOdometry, FrameRows, Keyframe, OdometryConfig
 from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.imu.preintegration import preintegrate_intervals
 from vigs_core.geometry import se3_inverse
@@ -96,6 +96,8 @@ class VisualInertialOdometry(DenseOdometry):
         self._held: list[int] = []                                          # stamps held still before init
         self._anchored: set[int] = set()                                    # fixed keyframes of the current BA
         self.frame_status: dict[int, str] = {}                              # stamp (ns) -> status, every frame
+        self._increments = FrameRows((4,))   # per frame row: dt, dv from its settled keyframe (frame_velocities)
+        self._awaiting_increments: list[int] = []   # settled keyframes whose frames' increments wait for metric
 
     # ------------------------------------------------------------------ hooks of DenseOdometry
     def _new_keyframe(self, frame_idx: int, image: np.ndarray, pose: torch.Tensor, disp: torch.Tensor) -> Keyframe:
@@ -307,34 +309,66 @@ class VisualInertialOdometry(DenseOdometry):
     # ------------------------------------------------------------------ outputs
     def frame_velocities(self) -> tuple[np.ndarray, torch.Tensor]:
         """Stamps (N,) ns and body velocities (N, 3) m/s in the world of every posed frame, propagated by the
-        IMU from the frame's reference keyframe state, ``v = v_k + g dt + R_wb,k dv_kf`` (all frames in one
-        batched preintegration at their keyframes' biases); NaN while the map is not metric and for a frame
-        whose interval holds an IMU gap over ``max_imu_gap_s`` (not integrated across)."""
+        IMU from the frame's reference keyframe state, ``v = v_k + g dt + R_wb,k dv_kf``; NaN while the map is not
+        metric and for a frame whose interval holds an IMU gap over ``max_imu_gap_s`` (not integrated across) or
+        whose IMU is no longer held. ``dt, dv_kf`` are those kept when the keyframe settled
+        (:meth:`_on_settled`), else preintegrated now (in one batch at the keyframes' biases)."""
         posed = [f for f in self.frames if f.ref is not None]
         t = np.array([f.t_ns for f in posed], dtype=np.int64)
         vel = torch.full((len(posed), 3), float("nan"), dtype=torch.float64)
         if not self.vio.metric:
             return t, vel
-        at_kf, between = [], []
-        for n, f in enumerate(posed):
-            st = self.vio.states[f.ref]
-            if f.t_ns == st.t_ns:
-                at_kf.append(n)
-            elif self.vio.imu_covers(st.t_ns, f.t_ns):
-                between.append(n)
-        for n in at_kf:
+        inc = self._increments.take([f._row for f in posed])
+        at_kf = np.array([f.t_ns == self.vio.states[f.ref].t_ns for f in posed], dtype=bool)
+        for n in np.flatnonzero(at_kf):
             vel[n] = self.vio.states[posed[n].ref].velocity
+        pending = np.flatnonzero(np.isnan(inc[:, 0]) & ~at_kf)
+        if len(pending):
+            inc[pending] = self._velocity_increments([posed[n].ref for n in pending], t[pending])
+        between = np.flatnonzero(np.isfinite(inc[:, 0]) & ~at_kf).tolist()
         if between:
             refs = [posed[n].ref for n in between]
-            b = torch.stack([self.vio.bias_of(k) for k in refs])
-            pre = preintegrate_intervals(self.vio.imu, [self.vio.states[k].t_ns for k in refs], t[between],
-                                         self.vio.noise, b[:, :3], b[:, 3:], self.vio_config.scheme)
             R_wb = torch.stack([se3_inverse(self.keyframes[k].pose.to(torch.float64))[:3, :3] @ self.vio.T_cb[:3, :3]
                                 for k in refs])
             v0 = torch.stack([self.vio.states[k].velocity for k in refs])
-            g = self.vio.gravity_world()
-            vel[between] = v0 + g * pre.dt[:, None] + (R_wb @ pre.delta_v[..., None])[..., 0]
+            dt, dv = torch.from_numpy(inc[between, :1]), torch.from_numpy(inc[between, 1:])
+            vel[between] = v0 + self.vio.gravity_world() * dt + (R_wb @ dv[..., None])[..., 0]
         return t, vel
+
+    def _velocity_increments(self, refs: list[int], stamps: np.ndarray) -> np.ndarray:
+        """``(dt s, dv_kf (3,))`` (M, 4) from keyframes ``refs`` to the frames at ``stamps`` (M,) ns, preintegrated
+        at the keyframes' biases; NaN across an IMU gap or where the IMU is not held."""
+        out = np.full((len(refs), 4), np.nan)
+        sel = [n for n, (k, t) in enumerate(zip(refs, stamps)) if self.vio.imu_covers(self.vio.states[k].t_ns, int(t))]
+        if sel:
+            b = torch.stack([self.vio.bias_of(refs[n]) for n in sel])
+            pre = preintegrate_intervals(self.vio.imu, [self.vio.states[refs[n]].t_ns for n in sel],
+                                         np.asarray(stamps)[sel], self.vio.noise, b[:, :3], b[:, 3:],
+                                         self.vio_config.scheme)
+            out[sel, 0] = pre.dt.numpy()
+            out[sel, 1:] = pre.delta_v.numpy()
+        return out
+
+    def _on_settled(self, ids: list[int]) -> None:
+        """Keep the velocity increments of the settled keyframes' frames (:meth:`frame_velocities`): the IMU
+        behind the window is then not needed for the outputs, so a streamed record can be bounded
+        (:class:`~vigs_core.imu.buffer.ImuBufferConfig` ``max_age_s``). Keyframes settled before the map is
+        metric wait for it: their biases are estimated by the initialisation."""
+        self._awaiting_increments += [k for k in ids if k in self.vio.states]
+        if not self.vio.metric or not self._awaiting_increments:
+            return
+        ids, self._awaiting_increments = set(self._awaiting_increments), []
+        oldest = min(self.vio.states[k].t_ns for k in ids)
+        frames = []
+        for f in reversed(self.frames):   # a settled keyframe's frames are among the last few window's worth
+            if f.t_ns < oldest:
+                break
+            if f.ref in ids and f.t_ns != self.vio.states[f.ref].t_ns:
+                frames.append(f)
+        if frames:
+            inc = self._velocity_increments([f.ref for f in frames], np.array([f.t_ns for f in frames]))
+            for f, row in zip(frames, inc):
+                self._increments.record(f._row)[:] = row
 
     def frame_twist(self, t_ns: int) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The twist of the frame at ``t_ns`` when it was the last one tracked with an IMU prediction: velocity
