@@ -25,6 +25,7 @@ from vigs_core.frontend.keyframe_changes import SentKeyframes
 from vigs_core.geometry import nearest_rotation
 from vigs_core.loop import apply_to_odometry
 from vigs_core.system import OdometryStream, PipelineConfig
+from vigs_core.system.stream import IMU_HISTORY_S
 from vigs_core.types import ImuNoise
 from vigs_ros.frames import invert
 
@@ -76,7 +77,7 @@ class FrontendEngine:
     """
 
     def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray, noise: ImuNoise | None,
-                 imu_history_s: float | None = 120.0, pose_update_tolerance: float = 1e-6) -> None:
+                 imu_history_s: float | None = IMU_HISTORY_S, pose_update_tolerance: float = 1e-6) -> None:
         self.stream = OdometryStream(camera, config, T_bc, noise, imu_history_s)
         self.camera = self.stream.camera
         self.odometry = self.stream.odometry

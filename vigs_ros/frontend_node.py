@@ -111,6 +111,7 @@ from vigs_core.io import write_frame_schedule
 from vigs_core.ranges import Range
 from vigs_core.system import PipelineConfig
 from vigs_core.system.pipeline import Checkpoints, frame_statuses, pose_outputs, write_pose_outputs
+from vigs_core.system.stream import IMU_HISTORY_S
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import METRIC_STATUSES
 from vigs_core.vio.odometry_covariance import OdometryCovariance, OdometryCovarianceConfig
@@ -170,7 +171,7 @@ PARAMS = [
               range=Range(0)),
     ParamSpec("path_max_poses", 20000, "newest keyframes in the path", range=Range(1)),
     ParamSpec("status_period_s", 1.0, "period of the diagnostics status (s)", range=Range(0, lo_open=True)),
-    ParamSpec("imu_buffer_s", 120.0, "IMU history kept for the VIO core (s; covers its initialisation window); "
+    ParamSpec("imu_buffer_s", IMU_HISTORY_S, "IMU history kept for the VIO core (s; covers its initialisation window); "
                                      "also bounds the samples queued for the tracking thread",
                                      range=Range(0, lo_open=True)),
 ]

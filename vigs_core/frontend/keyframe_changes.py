@@ -27,15 +27,17 @@ def depth_scale_change(d_old: torch.Tensor, d_new: torch.Tensor) -> float:
 @dataclass
 class _Reference:
     """``T_WC``: the pose last sent (as the consumer gave it); ``disp`` (revision ``revision``, at the keyframe's depth scale
-    ``depth_scale`` then; None once settled) with ``ratio`` = its depths / the depths last sent; ``seen``: the
-    keyframe's (pose tensor, revision, depth scale) last compared."""
+    ``depth_scale`` then; None once settled) with ``ratio`` = its depths / the depths last sent; ``seen_pose``,
+    ``seen_revision``, ``seen_scale``: the keyframe's pose tensor, revision and depth scale last compared."""
 
     T_WC: Any
     disp: torch.Tensor | None
     revision: int
     depth_scale: float
     ratio: float
-    seen: tuple[torch.Tensor, int, float]
+    seen_pose: torch.Tensor
+    seen_revision: int
+    seen_scale: float
 
 
 class SentKeyframes:
@@ -54,8 +56,8 @@ class SentKeyframes:
 
     def record(self, kf: Any, T_WC: Any) -> None:
         """``kf`` was sent now, at pose ``T_WC`` (4, 4; a tensor or an array) and its current depths."""
-        self._refs[kf.id] = _Reference(T_WC, kf.disp, kf.revision, kf.depth_scale, 1.0,
-                                       (kf.pose, kf.revision, kf.depth_scale))
+        self._refs[kf.id] = _Reference(T_WC, kf.disp, kf.revision, kf.depth_scale, 1.0, kf.pose, kf.revision,
+                                       kf.depth_scale)
 
     def change(self, kf: Any) -> tuple[Any, float] | None:
         """None when ``kf`` is unchanged since the last call (or :meth:`record`); else the pose last sent and
@@ -63,10 +65,9 @@ class SentKeyframes:
         ref = self._refs[kf.id]
         if kf.disp is None:
             ref.disp = None   # settled: no revision follows
-        seen = (kf.pose, kf.revision, kf.depth_scale)
-        if seen[0] is ref.seen[0] and seen[1:] == ref.seen[1:]:
-            return None
-        ref.seen = seen
+        if kf.pose is ref.seen_pose and kf.revision == ref.seen_revision and kf.depth_scale == ref.seen_scale:
+            return None   # called for every keyframe at every frame: no allocation on this path
+        ref.seen_pose, ref.seen_revision, ref.seen_scale = kf.pose, kf.revision, kf.depth_scale
         if kf.revision != ref.revision:
             if ref.disp is None or kf.disp is None:
                 raise RuntimeError(f"keyframe {kf.id}: disparities re-estimated after it left the window")

@@ -192,14 +192,15 @@ class FrameRows:
             self._blocks.append(np.full((self._chunk, *self.shape), np.nan))
         return self._blocks[block][offset]
 
-    def take(self, rows: np.ndarray) -> np.ndarray:
-        """Copies (M, *shape) of the records of ``rows`` (M,), NaN where unset: one gather per chunk."""
+    def take(self, rows: np.ndarray, part: int | None = None) -> np.ndarray:
+        """Copies (M, *shape) of the records of ``rows`` (M,), or of their ``part`` along the first axis of
+        ``shape``; NaN where unset: one gather per chunk."""
         rows = np.asarray(rows, dtype=np.int64)
-        out = np.full((len(rows), *self.shape), np.nan)
+        out = np.full((len(rows), *(self.shape if part is None else self.shape[1:])), np.nan)
         block, offset = np.divmod(rows, self._chunk)
         for b in np.unique(block[block < len(self._blocks)]):
             sel = block == b
-            out[sel] = self._blocks[b][offset[sel]]
+            out[sel] = self._blocks[b][offset[sel]] if part is None else self._blocks[b][offset[sel], part]
         return out
 
 
@@ -225,7 +226,7 @@ class PoseRows:
     def take(self, rows: np.ndarray, slot: int) -> np.ndarray:
         """Copies (M, 4, 4) of the poses in ``slot`` of ``rows`` (M,), NaN where unset (the outputs read every
         frame's pose)."""
-        return self._records.take(rows)[:, slot]
+        return self._records.take(rows, slot)
 
     def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
         """Store ``pose`` (4, 4) as float64 in ``slot`` of ``row`` (None unsets it)."""

@@ -28,6 +28,8 @@ from vigs_core.system.config import PipelineConfig
 from vigs_core.types import ImuNoise
 from vigs_core.vio.odometry import VisualInertialOdometry
 
+IMU_HISTORY_S = 120.0   # IMU kept behind the newest sample by the streaming callers (OdometryStream), s
+
 
 class Preprocessor:
     """Undistorts to a pinhole camera and resizes to the processing resolution in one remap.
@@ -66,7 +68,7 @@ class OdometryStream:
     """
 
     def __init__(self, camera: CameraModel, config: PipelineConfig, T_bc: np.ndarray | None = None,
-                 imu_noise: ImuNoise | None = None, imu_history_s: float | None = 120.0) -> None:
+                 imu_noise: ImuNoise | None = None, imu_history_s: float | None = IMU_HISTORY_S) -> None:
         torch.set_num_threads(config.torch_threads)
         cv2.setNumThreads(config.torch_threads)
         self.config = config

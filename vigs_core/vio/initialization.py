@@ -71,10 +71,6 @@ class WorldAlignment:
         out[..., :3, 3] = self.scale * T_cw[..., :3, 3]
         return out
 
-    def disparity(self, disp: torch.Tensor) -> torch.Tensor:
-        """Inverse depths (any shape) in metric units: ``d / s``."""
-        return disp / self.scale
-
     def velocity(self, v: torch.Tensor) -> torch.Tensor:
         """Metric world velocities (..., 3) rotated into the new world."""
         return v @ self.R.to(v).T
