@@ -2,10 +2,14 @@
 (:class:`ChildChannel`: the process, a duplex pipe to it and a sender thread) and the child's first step
 (:func:`enter_child`).
 
-The caller never blocks on writing: messages are pickled on the caller's thread (the standard pickler,
+The caller does not write to the pipe itself: messages are pickled on the caller's thread (the standard pickler,
 ``send_bytes``: multiprocessing's own would hand every torch tensor over in shared memory, one segment per
 tensor) and written by the sender thread, so the child can always answer; a 7 MB batch of keyframe views and the
-child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself.
+child's answers once filled both pipe buffers and deadlocked both sides when the caller wrote them itself. The
+sender's queue is bounded: a child that lags behind (a niced worker on a saturated machine) made it grow without
+end (tens of MB of keyframe images in the caller). Past ``max_queued_bytes`` :meth:`ChildChannel.post` waits for
+the sender, and reads the child's answers meanwhile through the caller's ``while_waiting``, so neither side
+waits on a full pipe.
 
 The child leaves the parent's process group and ignores SIGINT: Ctrl-C in a terminal and a SIGTERM to the group
 (``kill -- -PGID``, ``timeout``) reach only the parent, which finishes the run with its workers still there (a group
@@ -26,10 +30,14 @@ import pickle
 import queue
 import signal
 import threading
+import time
 from multiprocessing import resource_tracker
 from typing import Any, Callable, Iterator
 
 _PR_SET_NAME = 15   # prctl(2)
+MAX_QUEUED_BYTES = 8 << 20
+"""Default bound of a :class:`ChildChannel`'s queue: about 90 keyframe images at 376x240, far above what a child
+that keeps up leaves queued (about 1.5 MB for loop closure on the procedural soak)."""
 
 
 class ChildProcessEnded(RuntimeError):
@@ -88,13 +96,21 @@ class ChildChannel:
     """A daemon child ``target(conn, *args)`` started with the spawn method (no fork of a process that runs
     threads), named ``name``, and the caller's end of its pipe.
 
+    Args:
+        target, args, name: the child's function, its arguments after the pipe, and the process name.
+        max_queued_bytes: what the sender's queue may hold before :meth:`post` waits (module docstring).
+        while_waiting: called repeatedly while :meth:`post` waits, to read what the child sends unasked (None:
+            the child only answers calls, which the caller reads after posting them).
+
     Attributes:
         process: the child (``multiprocessing.Process``).
         conn: the caller's end of the pipe (``poll``); reading goes through :meth:`receive`, writing through
             :meth:`post`.
+        waited_s: seconds :meth:`post` waited for room in the queue.
     """
 
-    def __init__(self, target: Callable[..., None], args: tuple, name: str) -> None:
+    def __init__(self, target: Callable[..., None], args: tuple, name: str, max_queued_bytes: int = MAX_QUEUED_BYTES,
+                 while_waiting: Callable[[], None] | None = None) -> None:
         ctx = mp.get_context("spawn")
         self.conn, child_conn = ctx.Pipe()
         self.process = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
@@ -109,13 +125,37 @@ class ChildChannel:
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         child_conn.close()
+        self.max_queued_bytes = max_queued_bytes
+        self.waited_s = 0.0
+        self._while_waiting = while_waiting
         self._outbox: queue.Queue = queue.Queue()
+        self._queued_bytes = 0
+        self._count_lock = threading.Lock()
+        self._written = threading.Event()
         self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
         self._sender.start()
 
+    @property
+    def queued_bytes(self) -> int:
+        """Bytes of the messages posted and not yet written to the pipe."""
+        return self._queued_bytes
+
     def post(self, msg: tuple) -> None:
-        """Queue ``msg`` for the child (pickled now, on the caller's thread)."""
-        self._outbox.put(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+        """Queue ``msg`` for the child (pickled now, on the caller's thread); then, while the queue holds more than
+        ``max_queued_bytes`` and the child reads, wait (calling ``while_waiting``)."""
+        data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+        with self._count_lock:
+            self._queued_bytes += len(data)
+        self._outbox.put(data)
+        if self._queued_bytes <= self.max_queued_bytes:
+            return
+        t0 = time.perf_counter()
+        while self._queued_bytes > self.max_queued_bytes and self._sender.is_alive():
+            if self._while_waiting is not None:
+                self._while_waiting()
+            self._written.wait(0.05)
+            self._written.clear()   # the condition is tested after: a write between wait and clear is not missed
+        self.waited_s += time.perf_counter() - t0
 
     def receive(self) -> tuple:
         """The child's next message; :class:`ChildProcessEnded` when the child is gone."""
@@ -142,3 +182,6 @@ class ChildChannel:
                 self.conn.send_bytes(data)
             except OSError:   # the child is gone; the caller's next read says so
                 return
+            with self._count_lock:
+                self._queued_bytes -= len(data)
+            self._written.set()

@@ -46,7 +46,9 @@ MAX_REASONS = 200  # rejection reasons kept for the report (the counters count a
 @dataclass
 class LoopStats:
     """Counters and timings for the run report: candidates passing detection, loops accepted and rejected
-    (with the reasons of the first rejections), PGBA runs and the seconds of each, detection seconds in total."""
+    (with the reasons of the first rejections), PGBA runs and the seconds of each, detection seconds in total, and
+    the seconds the caller waited for a worker process that lagged behind (:class:`~vigs_core.child_process.
+    ChildChannel`; 0 with a thread)."""
 
     candidates: int = 0
     loops_found: int = 0
@@ -56,6 +58,7 @@ class LoopStats:
     detection_seconds: float = 0.0
     accepted_pairs: list[tuple[int, int]] = field(default_factory=list)
     rejection_reasons: list[str] = field(default_factory=list)
+    queue_wait_seconds: float = 0.0
 
     def as_dict(self) -> dict:
         n = len(self.pgba_seconds)
@@ -68,6 +71,7 @@ class LoopStats:
             "pgba_seconds_mean": sum(self.pgba_seconds) / n if n else 0.0,
             "pgba_seconds_max": max(self.pgba_seconds) if n else 0.0,
             "detection_seconds": self.detection_seconds,
+            "queue_wait_seconds": self.queue_wait_seconds,
             "rejection_reasons": self.rejection_reasons[:20],
         }
 

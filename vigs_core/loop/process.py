@@ -20,10 +20,11 @@ Protocol (one duplex pipe, messages handled in order by the child, an ``inline``
   information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
 * ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
 
-The pipe, its sender thread (the caller never blocks on writing) and the signal handling are
-:mod:`vigs_core.child_process`'s. Tensors travel as NumPy arrays (:func:`vigs_core.arrays.host`): NumPy pickles
-only the elements of a view of a larger batch (keyframe views, PGBA corrections), not its whole storage, and
-about 20 times faster than torch pickles a tensor (8 s of the main thread on hybrid MH_03 before).
+The pipe, its sender thread (the caller waits only when the child lags far behind, reading the child's answers
+meanwhile) and the signal handling are :mod:`vigs_core.child_process`'s. Tensors travel as NumPy arrays
+(:func:`vigs_core.arrays.host`): NumPy pickles only the elements of a view of a larger batch (keyframe views, PGBA
+corrections), not its whole storage, and about 20 times faster than torch pickles a tensor (8 s of the main
+thread on hybrid MH_03 before).
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
@@ -113,7 +114,8 @@ class LoopClosureProcess:
         self.config = config
         self.stats = LoopStats()
         self.units: dict[int, float] = {}
-        self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure")
+        self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure",
+                                     while_waiting=self._drain)
         self._sent: dict[int, torch.Tensor] = {}   # id -> the pose tensor of the view last sent
         self._found = 0
         self._covered = 0
@@ -130,7 +132,7 @@ class LoopClosureProcess:
         if kind == "state":   # an answer sent before the child started the PGBA posted last covers fewer loops
             self._found, self._covered = msg[1], max(self._covered, msg[2])
         elif kind in ("synced", "closed"):
-            self.stats = msg[1]
+            self.stats = replace(msg[1], queue_wait_seconds=self._channel.waited_s)
         elif kind == "result":
             result = msg[1]
             if result is not None:

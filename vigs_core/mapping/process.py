@@ -17,8 +17,8 @@ Protocol (one duplex pipe, messages handled in order by the child):
   ``("error", text)``. ``close`` stops the worker, removes the keyframe store's folder and ends the child.
 
 The pipe, its sender thread and the signal handling are :mod:`vigs_core.child_process`'s. Only the caller's
-thread reads, and only the answer to its own call, so the child never writes unasked. Tensors travel as NumPy
-arrays.
+thread reads, and only the answer to its own call, so the child never writes unasked (and the caller may wait for
+room in the sender's queue without reading). Tensors travel as NumPy arrays.
 """
 from __future__ import annotations
 
