@@ -6,8 +6,9 @@ Runs the pipeline in this process on BAG (``--params`` as ``vigs run``) and, whe
 each, plus containers and object dictionaries; a part shared by two holders counts for the first) and reads the
 process RSS and glibc's allocated bytes (``mallinfo2``). Prints, per holder, the size at both counts and the
 growth per keyframe; RSS growth beyond the holders' is the allocator's (fragmentation) or unlisted holders'.
-The loop-closure and mapping children are separate processes (``mapping: {process: false}`` in ``--params``
-puts the mapper's holders here): ``vigs bench soak`` gives their RSS.
+The loop-closure and mapping children are separate processes (``mapping: {process: false}`` and
+``loop: {process: false}`` in ``--params`` put the mapper's and the loop closure's holders here): ``vigs bench
+soak`` gives their RSS.
 
     vigs bench memory_by_holder BAG [--at 1200,3000] [--params FILE]
 """
@@ -82,6 +83,7 @@ def malloc_in_use() -> int | None:
 
 def holders(odo: Any, mapping: Any) -> dict[str, Any]:
     """The long-lived holders of the main process, in counting order."""
+    from vigs_core.loop.closure import LoopClosure
     from vigs_core.loop.driver import LoopClosureDriver
     from vigs_core.mapping.mapper import GaussianMapper
 
@@ -94,7 +96,12 @@ def holders(odo: Any, mapping: Any) -> dict[str, Any]:
         out["mapping bookkeeping"] = mapping
     drivers = [o for o in gc.get_objects() if isinstance(o, LoopClosureDriver)]
     if drivers:
-        out |= {"loop-closure views": drivers[0]._views, "loop-closure caller": drivers[0]}
+        out["loop-closure views"] = drivers[0]._views
+        closure = drivers[0].closure
+        if isinstance(closure, LoopClosure):   # a loop-closure thread (loop.process false); else the child's
+            out |= {"loop detector (thumbnails, kept images)": closure.detector, "loop pose graph": closure.graph,
+                    "loop decisions": closure.decisions}
+        out["loop-closure caller"] = drivers[0]
     out["odometry (rest)"] = odo
     return out
 
