@@ -127,3 +127,44 @@ def test_close_can_discard_the_queued_jobs_and_waits_for_the_running_one():
     assert closure.close(discard_queued=True) == 3
     assert finished == [True]                   # the running job was finished, not cut
     assert closure.graph.ids == [0]           # the three queued ones never ran
+
+
+def test_a_lagging_worker_thread_queues_views_without_their_images():
+    """The detector keeps a view's image and disparities when it is queued (spilled beyond the resident count), so
+    the jobs waiting for a stalled worker hold neither; detection then reads them back."""
+    import gc
+    import threading
+    import weakref
+
+    from vigs_core.spill import SpillConfig
+
+    closure = LoopClosure(LoopConfig(asynchronous=True, images=SpillConfig(resident=1)), DISFlowEstimator(GRID), INTR)
+    started, release = threading.Event(), threading.Event()
+
+    def blocking_information():
+        started.set()
+        release.wait(10)
+        return None
+
+    _, pristine, depths = circle_sequence(5, W, H, INTR.fx, GRID.stride)   # cached: the test's own copies below
+    images = [im.copy() for im in pristine]
+    refs = [weakref.ref(im) for im in images]
+    bare: list[KeyframeView] = []
+    try:
+        for k in range(5):
+            view = KeyframeView.from_depth(k, images[k], torch.eye(4, dtype=torch.float64), depths[k])
+            closure.add_keyframe(view, bare, blocking_information if k == 0 else None)
+            bare.append(KeyframeView(k, None, view.T_WC, None))
+            assert started.wait(10)
+        del images, view
+        gc.collect()
+        assert [r() is None for r in refs] == [True, True, True, True, False]   # the newest stays resident
+        release.set()
+        closure.wait()
+        assert closure.graph.ids == [0, 1, 2, 3, 4]
+        for k in range(5):
+            assert np.array_equal(closure.detector.image(bare[k]), pristine[k])
+            assert torch.allclose(closure.detector.depth(bare[k]), depths[k].double())
+    finally:
+        release.set()
+        closure.close()

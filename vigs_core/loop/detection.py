@@ -157,8 +157,8 @@ class LoopDetector:
         self.verification = verification or LoopVerificationConfig()
         self._thumbs: dict[int, np.ndarray] = {}
         self._images = SpillStore(images, "loop-images")
-        self._disps = SpillStore(images, "loop-depths")   # id -> disparities (P,) of the revision in _revisions
-        self._revisions: dict[int, tuple[int, float]] = {}   # id -> (revision, depth_scale) of the kept ones
+        self._disps = SpillStore(images, "loop-depths")   # id -> (disparities (P,), [their depth_scale])
+        self._revisions: dict[int, int] = {}   # id -> revision of the kept disparities
         self._coords = self.grid.coords()   # (P, 2) grid pixels: the targets of zero flow
         self._last_loop_kf: int | None = None
 
@@ -176,17 +176,19 @@ class LoopDetector:
         a revision not kept yet)."""
         if kf.image is not None and kf.id not in self._images:
             self._images.put(kf.id, kf.image)
-        if kf.disp is not None and self._revisions.get(kf.id, (None,))[0] != kf.revision:
-            self._disps.put(kf.id, kf.disp.to(F64).numpy())
-            self._revisions[kf.id] = (kf.revision, kf.depth_scale)
+        if kf.disp is not None and self._revisions.get(kf.id) != kf.revision:
+            # a copy, with its scale in the same entry: a reader on another thread never pairs one with the other's
+            # predecessor
+            self._disps.put(kf.id, kf.disp.to(F64, copy=True).numpy(), np.array([kf.depth_scale]))
+            self._revisions[kf.id] = kf.revision
 
     def depth(self, kf: KeyframeView) -> torch.Tensor:
         """(P,) float64 grid depths of the view, from its disparities or, without them, from the kept ones
         rescaled to the view's depth scale (KeyError for a keyframe whose disparities were never given)."""
         if kf.disp is not None:
             return kf.depth
-        _, scale = self._revisions[kf.id]
-        return positive_reciprocal(torch.from_numpy(self._disps.get(kf.id)[0])) * (kf.depth_scale / scale)
+        disp, scale = self._disps.get(kf.id)
+        return positive_reciprocal(torch.from_numpy(disp)) * (kf.depth_scale / float(scale[0]))
 
     def close(self) -> None:
         """Drop the kept images and disparities (and their spill folders)."""
