@@ -16,6 +16,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.frontend import DenseOdometry, OdometryConfig
+from vigs_core.heap import allocator
 from vigs_core.io import read_tum, write_euroc_camera, write_euroc_groundtruth
 from vigs_core.io.calibration import CameraCalibration, write_camera_yaml
 from vigs_core.sim.render import Renderer
@@ -115,7 +116,7 @@ def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
     assert report["keyframes"] >= 4
     assert report["accuracy"]["recall@0.1"] == pytest.approx(1.0)
     assert report["accuracy"]["ate_rmse"] < 0.03
-    assert report["frames_per_s"] > 0 and report["peak_rss_mb"] > 0
+    assert report["frames_per_s"] > 0 and report["peak_rss_mb"] > 0 and report["allocator"] == allocator()
     assert {"flow", "tracking", "ba"} <= set(report["timings_s"])
     traj = np.loadtxt(out / "trajectory.txt")
     assert traj.shape == (N, 8)
@@ -132,6 +133,7 @@ def test_vigs_run_with_loop_closure_in_its_worker_process(sequence, tmp_path):
     assert report["frames_posed"] == N and report["accuracy"]["ate_rmse"] < 0.03
     assert report["loop"]["loops_found"] == 0 and report["loop"]["corrections_applied"] == 0
     assert report["peak_rss_mb_worker_process"] > 50   # a Python process with torch imported
+    assert report["loop"]["queue_wait_seconds"] >= 0
 
 
 def test_unreadable_frames_are_skipped_and_too_many_end_the_run_with_its_outputs(sequence, tmp_path, capsys):

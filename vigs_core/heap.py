@@ -1,7 +1,7 @@
 """glibc malloc policies for processes whose large temporaries interleave with long-lived small state.
 
 Two opposite choices, each for one kind of process (process-wide; no-ops returning False where the C library is
-not glibc):
+not glibc or another malloc was preloaded, :func:`allocator`):
 
 * :func:`retain_freed_heap` for the Gaussian mapper, whose every step allocates and frees tens of megabytes:
   keeping them in the heap avoids a page fault per 4 KiB on the next step;
@@ -13,13 +13,32 @@ not glibc):
 from __future__ import annotations
 
 import ctypes
+from pathlib import Path
 from typing import Callable
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 
 
+def allocator(maps: str | None = None) -> str:
+    """The malloc this process uses, from the libraries mapped into it (``maps``: the text of ``/proc/self/maps``,
+    read when None): "jemalloc" or "tcmalloc" when one was preloaded (``LD_PRELOAD``), else "libc"; "unknown"
+    without ``/proc``. A long run's RSS growth depends on it (docs/benchmarks.md, issue 19), so the report says
+    which."""
+    if maps is None:
+        try:
+            maps = Path("/proc/self/maps").read_text()
+        except OSError:
+            return "unknown"
+    for name in ("jemalloc", "tcmalloc"):
+        if f"/lib{name}" in maps:
+            return name
+    return "libc"
+
+
 def _mallopt() -> Callable[[int, int], int] | None:
+    if allocator() not in ("libc", "unknown"):   # glibc's mallopt would succeed without effect
+        return None
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt
     except (OSError, AttributeError):

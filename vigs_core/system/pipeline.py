@@ -64,6 +64,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import interpolate_poses, matrix_to_quat
+from vigs_core.heap import allocator
 from vigs_core.imu.samples import ordered_samples
 from vigs_core.loop import LoopClosureDriver
 from vigs_core.mapping.process import MappingProcessError
@@ -507,7 +508,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
         "peak_rss_mb": round(peak_rss_mb(), 1),
-        "peak_rss_mb_worker_process": round(peak_rss_mb(resource.RUSAGE_CHILDREN), 1),
+        "peak_rss_mb_worker_process": round(peak_rss_mb(resource.RUSAGE_CHILDREN), 1), "allocator": allocator(),
         "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
         "bad_frames": bad_frames,
     }
