@@ -70,6 +70,7 @@ def test_vigs_run_maps_keyframes_and_reports_render_quality(tmp_path):
     report = run_pipeline("sim", cfg, out, progress=False, sequence=rendered_sequence())
     assert report["mapping"]["keyframes_on_disk"] == report["keyframes"] - 2
     assert report["mapping"]["keyframe_disk_reads"] > 0
+    assert report["mapping"]["queue_wait_seconds"] >= 0   # the mapper runs in its process by default
     gc.collect()   # the store's folder goes with the mapper
     assert list((tmp_path / "spill").iterdir()) == []
     m = json.loads((out / "report.json").read_text())["mapping"]

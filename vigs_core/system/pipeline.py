@@ -67,7 +67,7 @@ from vigs_core.geometry import interpolate_poses, matrix_to_quat
 from vigs_core.heap import allocator
 from vigs_core.imu.samples import ordered_samples
 from vigs_core.loop import LoopClosureDriver
-from vigs_core.mapping.process import MappingProcessError
+from vigs_core.mapping.process import MapperProcess, MappingProcessError
 from vigs_core.system.config import PipelineConfig
 from vigs_core.system.mapping import OnlineMapping
 from vigs_core.system.prefetch import FramePrefetcher
@@ -524,6 +524,8 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                                      "interrupted": True}
             else:
                 report["mapping"] = mapping.evaluate(t_ns, T_WC)
+            if isinstance(mapping.mapper, MapperProcess):   # tracking waited for a mapping process that lagged
+                report["mapping"]["queue_wait_seconds"] = round(mapping.mapper.channel.waited_s, 3)
         except MappingProcessError as err:   # the trajectory and the report are still written, then it is raised
             print(f"vigs run: {err}\nvigs run: no map is written", file=sys.stderr)
             report["mapping"] = {"error": str(err).splitlines()[0]}
