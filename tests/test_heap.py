@@ -1,5 +1,5 @@
-"""Which malloc a process uses, from its mapped libraries: the report records it, and the glibc policies of
-:mod:`vigs_core.heap` do nothing under another one."""
+"""Which malloc a process uses, from its mapped libraries: the report records it, the glibc policies of
+:mod:`vigs_core.heap` do nothing under another one, and worker children do not inherit a preloaded one."""
 import ctypes.util
 import os
 import subprocess
@@ -7,7 +7,8 @@ import sys
 
 import pytest
 
-from vigs_core.heap import allocator
+from vigs_core.child_process import ChildChannel, enter_child, send
+from vigs_core.heap import allocator, worker_preload
 
 MAPS = """7f0000000000-7f0000001000 r-xp 00000000 08:01 1 /usr/lib/x86_64-linux-gnu/libc.so.6
 7f0000002000-7f0000003000 r-xp 00000000 08:01 2 /usr/lib/python3.12/lib-dynload/_ctypes.so
@@ -33,3 +34,28 @@ def test_a_process_with_jemalloc_preloaded_says_so_and_sets_no_glibc_policy():
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "LD_PRELOAD": lib}, check=True,
                          capture_output=True, text=True).stdout.split()
     assert out == ["jemalloc", "False"]
+
+
+def test_worker_preload_drops_only_a_preloaded_malloc():
+    assert worker_preload("libjemalloc.so.2") == ""
+    assert worker_preload("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2:/opt/libtrace.so") == "/opt/libtrace.so"
+    assert worker_preload("libtcmalloc_minimal.so.4 libfoo.so") == "libfoo.so"
+    assert worker_preload("/home/me/jemalloc/libbar.so") == "/home/me/jemalloc/libbar.so"
+
+
+def _report_allocator(conn) -> None:
+    enter_child("vigs-test")
+    send(conn, (allocator(), os.environ.get("LD_PRELOAD")))
+
+
+def test_a_worker_child_of_a_process_with_jemalloc_preloaded_uses_glibc(monkeypatch):
+    lib = ctypes.util.find_library("jemalloc")
+    if lib is None:
+        pytest.skip("libjemalloc is not installed (apt install libjemalloc2)")
+    monkeypatch.setenv("LD_PRELOAD", lib)
+    channel = ChildChannel(_report_allocator, (), "vigs-test")
+    try:
+        assert os.environ["LD_PRELOAD"] == lib                  # the caller's environment is as it was
+        assert channel.receive() == ("libc", "")
+    finally:
+        channel.close(timeout_s=5)

@@ -18,7 +18,8 @@ the child's start until it has left the group, and a group SIGTERM that arrived 
 a second importing its modules) is discarded there. A SIGTERM to the child itself ends it (multiprocessing
 terminates its daemon children so at the parent's exit), and so does the pipe closing (the parent died). Its
 process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench soak`` which worker it is: spawned children all
-run the same command line.
+run the same command line. A malloc preloaded for the caller (jemalloc) is not preloaded for the child
+(:func:`vigs_core.heap.worker_preload`).
 """
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ import threading
 import time
 from multiprocessing import resource_tracker
 from typing import Any, Callable, Iterator
+
+from vigs_core.heap import worker_preload
 
 _PR_SET_NAME = 15   # prctl(2)
 MAX_QUEUED_BYTES = 8 << 20
@@ -120,10 +123,15 @@ class ChildChannel:
         # launch it before blocking them
         resource_tracker.ensure_running()
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        preload = os.environ.get("LD_PRELOAD")   # the child inherits the environment at its start
+        if preload is not None:
+            os.environ["LD_PRELOAD"] = worker_preload(preload)
         try:
             self.process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+            if preload is not None:
+                os.environ["LD_PRELOAD"] = preload
         child_conn.close()
         self.max_queued_bytes = max_queued_bytes
         self.waited_s = 0.0

@@ -18,6 +18,7 @@ from typing import Callable
 
 # glibc mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_MALLOCS = ("jemalloc", "tcmalloc")   # mallocs that a process may preload instead of glibc's
 
 
 def allocator(maps: str | None = None) -> str:
@@ -30,10 +31,20 @@ def allocator(maps: str | None = None) -> str:
             maps = Path("/proc/self/maps").read_text()
         except OSError:
             return "unknown"
-    for name in ("jemalloc", "tcmalloc"):
+    for name in _MALLOCS:
         if f"/lib{name}" in maps:
             return name
     return "libc"
+
+
+def worker_preload(preload: str) -> str:
+    """``LD_PRELOAD`` for a worker child: ``preload`` without jemalloc or tcmalloc. The workers keep glibc's malloc
+    and their own policies here (the mapper's retained heap, the loop-closure child's fixed mmap threshold): a
+    preloaded jemalloc cost the mapper page faults (docs/benchmarks.md, issue 19), while it lowers the tracking
+    process's heap growth. Other preloaded libraries stay."""
+    kept = [p for p in preload.replace(":", " ").split()
+            if not any(Path(p).name.startswith(f"lib{name}") for name in _MALLOCS)]
+    return " ".join(kept)
 
 
 def _mallopt() -> Callable[[int, int], int] | None:
