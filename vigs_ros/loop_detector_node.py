@@ -104,7 +104,7 @@ class LoopDetectorNode(VigsNode):
         view = KeyframeView(kf.id, grey, torch.as_tensor(kf.T_wc, dtype=F64), disp, self.closure.unit(kf.id))
         self.closure.add_keyframe(view, [self.views[k] for k in sorted(self.views)])
         # the detector keeps image and disparities (spilled when old); later scalings go into depth_scale
-        self.views[kf.id] = dataclasses.replace(view, image=None, disp=None)
+        self.views[kf.id] = view.bare()
         self.metric = kf.metric
         self.status.count("keyframes_in")
         self.poll()

@@ -27,7 +27,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import torch
@@ -41,11 +41,6 @@ from vigs_core.solver import Intrinsics
 
 InformationSource = dict[int, torch.Tensor] | Callable[[], dict[int, torch.Tensor] | None] | None
 MAX_REASONS = 200  # rejection reasons kept for the report (the counters count all)
-
-
-def _bare(view: KeyframeView) -> KeyframeView:
-    """``view`` without image and disparities (the detector keeps them)."""
-    return view if view.image is None and view.disp is None else replace(view, image=None, disp=None)
 
 
 @dataclass
@@ -113,14 +108,11 @@ class LoopClosure:
         ``{previous id: (7, 7)}`` information, or a function returning it, evaluated on the worker thread), then
         loop detection runs against ``history`` (the earlier keyframes; snapshots, not modified).
 
-        With a worker thread the detector keeps the images and disparities the views carry now (spilled when
-        old), and the queued job holds the views without them: a worker that lags does not hold an image per
-        queued keyframe in memory."""
-        history = list(history)
-        if self.config.asynchronous:
-            for v in (new, *history):
-                self.detector.keep(v)
-            new, history = _bare(new), [_bare(v) for v in history]
+        The detector keeps the images and disparities the views carry now (spilled when old), and the job holds
+        the views without them: a worker thread that lags does not hold an image per queued keyframe in memory."""
+        for v in (new, *history):
+            self.detector.keep(v)
+        new, history = new.bare(), [v.bare() for v in history]
 
         def job() -> None:
             info = odometry_information() if callable(odometry_information) else odometry_information

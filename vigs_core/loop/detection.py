@@ -24,7 +24,7 @@ The best verified candidate (most inliers) becomes a loop edge ``(j, k, Z_jk, in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import cv2
@@ -79,6 +79,10 @@ class KeyframeView:
     def depth(self) -> torch.Tensor:
         """(P,) float64 depths of the grid pixels, map units (0 = unknown); the view must carry ``disp``."""
         return positive_reciprocal(self.disp)
+
+    def bare(self) -> "KeyframeView":
+        """This view without image and disparities (for a detector that keeps them, :meth:`LoopDetector.keep`)."""
+        return self if self.image is None and self.disp is None else replace(self, image=None, disp=None)
 
 
 def positive_reciprocal(x: torch.Tensor) -> torch.Tensor:

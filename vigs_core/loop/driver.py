@@ -23,7 +23,7 @@ corrections.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -199,8 +199,7 @@ class LoopClosureDriver:
         units = [self.closure.unit(kf.id) for kf in stale]
         for kf, view in zip(stale, keyframe_views(stale, units, images, disps)):
             views[kf.id] = view
-            self._views[kf.id] = (kf.pose, kf.revision, kf.depth_scale, kf.id in window,
-                                  replace(view, image=None, disp=None))
+            self._views[kf.id] = (kf.pose, kf.revision, kf.depth_scale, kf.id in window, view.bare())
         return {k: views[k] if k in views else self._views[k][4] for k in self.odometry.keyframes}
 
     def _depth(self, k: int) -> np.ndarray:

@@ -14,8 +14,8 @@ Protocol (one duplex pipe, messages handled in order by the child, an ``inline``
 * ``("views", [(id, T_WC, disp or None, unit, image or None, revision, depth_scale)])``: keyframe views new or
   changed since last sent, with image and disparities where the view carries them (its first view, and the
   disparities' last revision when the keyframe left the frontend's window: :meth:`LoopClosureDriver.
-  _current_views`). The child's detector keeps them (:meth:`LoopDetector.keep`, spilled to disk when old); the
-  uniform depth scalings that follow travel as ``depth_scale``;
+  _current_views`). The child's detector keeps them on arrival (:meth:`LoopDetector.keep`, spilled to disk when
+  old); the uniform depth scalings that follow travel as ``depth_scale``;
 * ``("keyframe", id, history_ids, information)``: :meth:`LoopClosure.add_keyframe` on the child's views; the
   information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
 * ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
@@ -63,25 +63,20 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
 
 
 def _serve(conn: Any, closure: LoopClosure) -> None:
-    views: dict[int, KeyframeView] = {}   # without image and disparities once detected: the detector keeps those
-    carrying: set[int] = set()             # views that still carry them
+    views: dict[int, KeyframeView] = {}   # without image and disparities: the detector keeps those on arrival
     covered = 0
     for msg in messages(conn):
         kind = msg[0]
         try:
             if kind == "views":
                 for k, T_WC, disp, unit, image, revision, depth_scale in msg[1]:
-                    views[k] = KeyframeView(k, image, torch.from_numpy(T_WC),
-                                            None if disp is None else torch.from_numpy(disp), unit, revision,
-                                            depth_scale)
-                    if image is not None or disp is not None:
-                        carrying.add(k)
+                    view = KeyframeView(k, image, torch.from_numpy(T_WC),
+                                        None if disp is None else torch.from_numpy(disp), unit, revision, depth_scale)
+                    closure.detector.keep(view)
+                    views[k] = view.bare()
             elif kind == "keyframe":
                 _, k, history, information = msg
                 closure.add_keyframe(views[k], [views[i] for i in history], information)
-                for i in carrying:
-                    views[i] = replace(views[i], image=None, disp=None)
-                carrying.clear()
             elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
                                                            msg[2]):
                 send(conn, ("result", None))
