@@ -10,9 +10,10 @@ A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (5
    confidence above ``min_mean_confidence``);
 4. verification (:func:`vigs_core.loop.two_view.estimate_relative_sim3`): dense two-view consistency in both
    directions (forward-backward flow confidence, reprojection with the keyframes' depths, depth agreement) on
-   correspondences ``j -> k`` started from the negated flow ``k -> j`` and ``k -> j`` re-estimated from the
-   negated ``j -> k``. Every flow starts from an explicit initial flow (zero for step 3), so a pair's
-   correspondences do not depend on the pairs checked before it (see :meth:`LoopDetector._correspondences`);
+   correspondences ``j -> k`` and ``k -> j`` whose flows start from the warp of each grid at the current
+   relative pose estimate (as the frontend's keyframe edges do). Every flow starts from an explicit initial
+   flow (zero for step 3), so a pair's correspondences do not depend on the pairs checked before it (see
+   :meth:`~vigs_core.frontend.dis_flow.DISFlowEstimator.dense_flow`);
 5. drift plausibility (ours): the measured relative pose may differ from the current relative estimate only
    by what odometry can have drifted over the path between the two keyframes (translation at most
    ``max_drift_fraction`` of the path length plus ``min_drift_m``, rotation and scale bounded). A repeated
@@ -35,7 +36,7 @@ from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
 from vigs_core.geometry import sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
-from vigs_core.solver import Intrinsics
+from vigs_core.solver import Intrinsics, reproject
 from vigs_core.spill import SpillConfig, SpillStore
 
 F64 = torch.float64
@@ -163,7 +164,7 @@ class LoopDetector:
         self._images = SpillStore(images, "loop-images")
         self._disps = SpillStore(images, "loop-depths")   # id -> (disparities (P,), [their depth_scale])
         self._revisions: dict[int, int] = {}   # id -> revision of the kept disparities
-        self._coords = self.grid.coords()   # (P, 2) grid pixels: the targets of zero flow
+        self._coords = torch.from_numpy(self.grid.coords()).to(F64)   # (P, 2) grid pixels
         self._last_loop_kf: int | None = None
 
     def _thumb(self, kf: KeyframeView) -> np.ndarray:
@@ -210,15 +211,25 @@ class LoopDetector:
         old.sort(key=lambda kf: -float(self._thumb(kf) @ t_new))
         return old[:cfg.max_flow_checks]
 
-    def _correspondences(self, src: KeyframeView, dst: KeyframeView, initial_target: np.ndarray | None = None
-                         ) -> tuple[TwoViewCorrespondences, float]:
-        """Dense correspondences ``src -> dst`` with forward-backward confidences and their mean flow (inf
-        without confident matches); the flow starts from ``initial_target`` (P, 2), default zero flow (which the
-        estimator passes to DIS explicitly, :meth:`~vigs_core.frontend.dis_flow.DISFlowEstimator.dense_flow`)."""
-        corr = self.estimator.estimate(self.image(src), self.image(dst), initial_target)
+    def _mean_flow(self, src: KeyframeView, dst: KeyframeView) -> float:
+        """Mean flow ``src -> dst`` of dense correspondences from zero flow (which the estimator passes to DIS
+        explicitly) with forward-backward confidences; inf without confident matches (step 3)."""
+        corr = self.estimator.estimate(self.image(src), self.image(dst))
         weight = np.asarray(corr.weight, dtype=np.float64)
-        flow = corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
-        return TwoViewCorrespondences.of(corr), flow
+        return corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
+
+    def _warped_correspondences(self, a: KeyframeView, b: KeyframeView
+                                ) -> tuple[TwoViewCorrespondences, TwoViewCorrespondences]:
+        """Dense correspondences ``a -> b`` and ``b -> a`` that measure a loop (module docstring, step 4): each
+        flow starts from the warp of its source grid at the current relative pose estimate (unknown depths warp
+        as points at infinity), and each serves as the other's forward-backward check. From zero flow, DIS fell
+        short of the large displacements of wide-baseline loops, and the measured loop was too short."""
+        T_cw = torch.linalg.inv(torch.stack([a.T_WC, b.T_WC]).to(F64))
+        disp = positive_reciprocal(torch.stack([self.depth(a), self.depth(b)]))
+        warp = reproject(T_cw, T_cw.flip(0), disp, self._coords, self.intr)
+        targets = torch.where(warp.valid[..., None], warp.uv, float("nan")).numpy()
+        ab, ba = self.estimator.estimate_pair(self.image(a), self.image(b), targets[0], targets[1])
+        return TwoViewCorrespondences.of(ab), TwoViewCorrespondences.of(ba)
 
     def drift_check(self, old: KeyframeView, new: KeyframeView, relative: torch.Tensor,
                     history: Sequence[KeyframeView]) -> str:
@@ -253,14 +264,10 @@ class LoopDetector:
         history = sorted(history, key=lambda kf: kf.id)
         best: tuple[TwoViewResult, KeyframeView] | None = None
         for old in self.candidates(new, history):
-            ab, mean_flow = self._correspondences(new, old)
-            if mean_flow >= cfg.max_mean_flow_px:
+            if self._mean_flow(new, old) >= cfg.max_mean_flow_px:
                 continue
             decision.candidates.append(old.id)
-            # old -> new from the negated flow new -> old at the same grid pixel, then new -> old again from the
-            # negated old -> new (module docstring, step 4)
-            ba, _ = self._correspondences(old, new, 2.0 * self._coords - ab.target.numpy())
-            ab, _ = self._correspondences(new, old, 2.0 * self._coords - ba.target.numpy())
+            ba, ab = self._warped_correspondences(old, new)
             # a = old, b = new: Z = S_old^{-1} S_new
             result = estimate_relative_sim3(self.depth(old), self.depth(new), ba, ab, self.grid, self.intr,
                                             self.verification)
