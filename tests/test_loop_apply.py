@@ -208,6 +208,43 @@ def test_loop_edges_follow_the_depth_units_of_applied_corrections():
                                sim3_act(before.measurements[-1], X_b).numpy(), atol=1e-12)
 
 
+def test_a_loop_to_a_keyframe_from_before_the_initialisation_rescales_it_rather_than_bend_the_metric_part():
+    """Keyframes 0-9 were created before the odometry was metric, and that part of the map (poses and depths) is
+    9 % too large: a loop from metric keyframe 39 to keyframe 3 measures a relative scale of 1.09 and a
+    translation 9 % long. Without a metric prior the early keyframes take the loop's scale; with a prior on
+    every keyframe (the graph before per-keyframe flags) the loop bent the metric part instead."""
+    from vigs_core.loop import KeyframePoseGraph
+    from vigs_core.loop.pgba import run_pgba
+    from vigs_core.loop.pose_graph import PoseGraphConfig
+
+    truth = circle_poses(40)
+    k = 1.09
+    estimate = truth.clone()
+    estimate[:10, :3, 3] = truth[10, :3, 3] + k * (truth[:10, :3, 3] - truth[10, :3, 3])
+    D = torch.diag(torch.tensor([k, k, k, 1.0], dtype=torch.float64))
+
+    def shape_error(T: torch.Tensor, nodes: slice) -> float:
+        """Largest change of a distance between two of the nodes against the truth (rigid-invariant)."""
+        p, q = T[nodes, :3, 3], truth[nodes, :3, 3]
+        return float((torch.cdist(p, p) - torch.cdist(q, q)).abs().max())
+
+    def corrected(metric_from: int) -> torch.Tensor:
+        graph = KeyframePoseGraph()
+        for n in range(40):
+            graph.add_keyframe(n, metric=n >= metric_from)
+        graph.add_loop(LoopEdge(3, 39, D @ torch.linalg.inv(truth[3]) @ truth[39],
+                                1e4 * torch.eye(7, dtype=torch.float64), 1.0))
+        pg, ids = graph.build({n: estimate[n] for n in range(40)})
+        assert torch.equal(pg.scale_information > 0, torch.arange(40) >= metric_from)
+        result = run_pgba(pg, ids, 1, PoseGraphConfig(huber_delta=0.0))
+        return torch.stack([result.corrections[n] @ estimate[n] for n in range(40)])
+
+    flagged, all_held = corrected(10), corrected(0)
+    assert shape_error(flagged, slice(None)) < 0.5 * shape_error(estimate, slice(None))
+    assert shape_error(all_held, slice(None)) > 0.8 * shape_error(estimate, slice(None))
+    assert shape_error(flagged, slice(10, None)) < 0.4 * shape_error(all_held, slice(10, None))
+
+
 def test_driver_views_follow_keyframes_re_expressed_outside_the_window():
     """The visual-inertial world alignment replaces every keyframe's pose and scales its depths, also of keyframes
     that left the window long ago; loop detection must see them in the new (metric) world, not a stale cache."""

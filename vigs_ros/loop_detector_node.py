@@ -70,7 +70,6 @@ class LoopDetectorNode(VigsNode):
         self.status = StatusReporter(self, self.p["status_topic"], self.p["status_period_s"])
         self.closure: LoopClosure | None = None
         self.views: dict[int, KeyframeView] = {}
-        self.metric = False   # the newest keyframe is metric: PGBA holds every keyframe's scale (LoopGraphConfig)
         self.pub_update = self.create_publisher(KeyframePoseUpdate, self.p["pose_update_topic"], reliable_qos(20))
         self.create_subscription(Keyframe, self.p["keyframe_topic"], self.on_keyframe, latched_qos(20))
         self.create_subscription(KeyframePoseUpdate, self.p["frontend_update_topic"], self.on_pose_update,
@@ -102,10 +101,9 @@ class LoopDetectorNode(VigsNode):
             return
         disp = torch.as_tensor(kf.disparity.reshape(-1), dtype=F64)
         view = KeyframeView(kf.id, grey, torch.as_tensor(kf.T_wc, dtype=F64), disp, self.closure.unit(kf.id))
-        self.closure.add_keyframe(view, [self.views[k] for k in sorted(self.views)])
+        self.closure.add_keyframe(view, [self.views[k] for k in sorted(self.views)], metric=kf.metric)
         # the detector keeps image and disparities (spilled when old); later scalings go into depth_scale
         self.views[kf.id] = view.bare()
-        self.metric = kf.metric
         self.status.count("keyframes_in")
         self.poll()
 
@@ -124,7 +122,7 @@ class LoopDetectorNode(VigsNode):
         if result is not None:
             self.publish_corrections(result.corrections)
         if self.closure.pending:
-            self.closure.start_pgba({k: v.T_WC for k, v in self.views.items()}, self.metric)
+            self.closure.start_pgba({k: v.T_WC for k, v in self.views.items()})
         for key, value in self.closure.stats.as_dict().items():
             if isinstance(value, (int, float)):
                 self.status.info[f"loop.{key}"] = str(value)

@@ -103,10 +103,11 @@ class LoopClosure:
 
     # ------------------------------------------------------------------ caller side
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
-                     odometry_information: InformationSource = None) -> None:
+                     odometry_information: InformationSource = None, metric: bool = False) -> None:
         """Queue ``new`` for the worker: its odometry edges to its predecessors join the graph (optional
         ``{previous id: (7, 7)}`` information, or a function returning it, evaluated on the worker thread), then
-        loop detection runs against ``history`` (the earlier keyframes; snapshots, not modified).
+        loop detection runs against ``history`` (the earlier keyframes; snapshots, not modified). ``metric``: the
+        keyframe was created while the odometry was metric (:meth:`KeyframePoseGraph.add_keyframe`).
 
         The detector keeps the images and disparities the views carry now (spilled when old), and the job holds
         the views without them: a worker thread that lags does not hold an image per queued keyframe in memory."""
@@ -117,7 +118,7 @@ class LoopClosure:
         def job() -> None:
             info = odometry_information() if callable(odometry_information) else odometry_information
             with self._lock:
-                self.graph.add_keyframe(new.id, info)
+                self.graph.add_keyframe(new.id, info, metric)
             self._detect(new, history)
 
         self._submit(job)
@@ -128,14 +129,13 @@ class LoopClosure:
         with self._lock:
             return self._pending_loops > 0
 
-    def start_pgba(self, poses: dict[int, torch.Tensor], metric: bool = False) -> bool:
+    def start_pgba(self, poses: dict[int, torch.Tensor]) -> bool:
         """Queue PGBA over the whole graph at the current poses ``{id: T_WC (4, 4)}`` when a loop is pending, no
-        PGBA is in flight and no result waits to be polled; True when queued. ``metric``: see
-        :meth:`KeyframePoseGraph.build` (metric keyframes)."""
+        PGBA is in flight and no result waits to be polled; True when queued."""
         with self._lock:
             if self._pending_loops == 0 or self._in_flight or self._result is not None:
                 return False
-            graph, ids = self.graph.build(poses, self.units, metric)
+            graph, ids = self.graph.build(poses, self.units)
             loops = len(self.graph.loops)
             self._pending_loops = 0
             self._in_flight = True

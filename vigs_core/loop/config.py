@@ -91,10 +91,10 @@ class LoopGraphConfig:
         sigma_translation_m: likewise for translation, map units.
         sigma_log_scale: standard deviation of an odometry edge's log scale (the dense reprojection of one
             direction does not observe it).
-        sigma_metric_log_scale: once the visual-inertial odometry is metric, every keyframe's log scale gets an
-            absolute prior of this standard deviation in PGBA (the IMU observes the scale at each keyframe, so
-            loops correct drift in position and orientation, not the metric scale; ours).
-        sigma_metric_gravity_rad: once metric, every keyframe's gravity direction (roll and pitch) gets an
+        sigma_metric_log_scale: every keyframe created while the visual-inertial odometry is metric gets an
+            absolute prior of this standard deviation on its log scale in PGBA (the IMU observes the scale at each
+            such keyframe, so loops correct drift in position and orientation, not the metric scale; ours).
+        sigma_metric_gravity_rad: each such keyframe's gravity direction (roll and pitch) gets an
             absolute prior of this standard deviation (rad) at its value before PGBA: the IMU observes them, so a
             loop corrects position and yaw (VINS-Mono's 4-DoF loop graph, softly) and does not tilt the world.
             0 (default): no such prior; measured no better (docs/benchmarks.md, "Estimator robustness").

@@ -10,10 +10,10 @@ visual-inertial subclass) and optionally the Gaussian mapper (VIGS-SLAM Sec. 3.1
    an odometry edge to the previous keyframe whose information comes from the frontend's dense correspondences
    of the pair (:func:`~vigs_core.loop.two_view.edge_information`; the configured standard deviations when the
    frontend has none);
-3. starts PGBA on the current poses when a loop is pending. Once the visual-inertial odometry is metric (the whole
-   map is re-expressed in metres at its initialisation), every keyframe's log scale gets an absolute prior of
-   standard deviation ``sigma_metric_log_scale``: the IMU observes the scale at each keyframe, so a loop
-   corrects position and orientation drift and does not trade the metric scale away.
+3. starts PGBA on the current poses when a loop is pending. Every keyframe created while the visual-inertial
+   odometry is metric gets an absolute prior of standard deviation ``sigma_metric_log_scale`` on its log scale:
+   the IMU observes the scale at each such keyframe, so a loop corrects position and orientation drift and does
+   not trade the metric scale away (:meth:`~vigs_core.loop.pgba.KeyframePoseGraph.build`).
 
 Detection, the odometry-edge information and PGBA run on the loop-closure worker: a child process by default
 (:mod:`vigs_core.loop.process`, ``LoopConfig.process``), else a thread; the tracking thread only builds keyframe
@@ -133,7 +133,7 @@ class LoopClosureDriver:
                     prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), self._depth(prev), self._depth(k),
                     edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
                     self.odometry.intr, self.config.verification)
-                self.closure.add_keyframe(b, history, info)
+                self.closure.add_keyframe(b, history, info, self._metric())
                 self._registered.append(k)
                 for i in [i for i in carrying if i <= k]:   # handed over: not sent again in this step
                     views[i] = self._views[i][4]
@@ -159,7 +159,7 @@ class LoopClosureDriver:
     def _start_pgba(self) -> None:
         T_WC = se3_inverse(torch.stack([self.odometry.keyframes[k].pose for k in self._registered]).to(F64))
         poses = dict(zip(self._registered, T_WC.unbind(0)))
-        self.closure.start_pgba(poses, self._metric())
+        self.closure.start_pgba(poses)
 
     def apply(self, result: PGBAResult) -> dict[int, tuple[torch.Tensor, float]]:
         """Apply PGBA corrections to the odometry (and its inertial states), the mapper and ``on_update``."""

@@ -41,13 +41,17 @@ class KeyframePoseGraph:
         self.ids: list[int] = []
         self.odometry: dict[tuple[int, int], torch.Tensor] = {}   # (i, j) -> information (7, 7)
         self.loops: list[LoopEdge] = []
+        self.metric: set[int] = set()   # keyframes created while the odometry was metric
 
-    def add_keyframe(self, kf_id: int, information: dict[int, torch.Tensor] | None = None) -> list[tuple[int, int]]:
+    def add_keyframe(self, kf_id: int, information: dict[int, torch.Tensor] | None = None,
+                     metric: bool = False) -> list[tuple[int, int]]:
         """Add keyframe ``kf_id`` (newer than all) with odometry edges from its predecessors.
 
         Args:
             information: optional ``{previous id: (7, 7)}`` information of the edge (previous, kf_id), e.g. from
                 the frontend's dense correspondences; missing ones get :func:`default_information`.
+            metric: the keyframe was created while the visual-inertial odometry was metric: the IMU observed its
+                scale and gravity direction in the window (see :meth:`build`).
         Returns:
             The new odometry edges ``(previous, kf_id)``.
         """
@@ -58,6 +62,8 @@ class KeyframePoseGraph:
         for e in edges:
             self.odometry[e] = information.get(e[0], default_information(self.config)).to(F64)
         self.ids.append(kf_id)
+        if metric:
+            self.metric.add(kf_id)
         return edges
 
     def add_loop(self, edge: LoopEdge) -> None:
@@ -66,12 +72,14 @@ class KeyframePoseGraph:
                 raise KeyError(f"loop edge ({edge.old}, {edge.new}) names keyframe {k}, not in the graph")
         self.loops.append(edge)
 
-    def build(self, poses: dict[int, torch.Tensor], units: dict[int, float] | None = None,
-              metric: bool = False) -> tuple[PoseGraph, list[int]]:
+    def build(self, poses: dict[int, torch.Tensor], units: dict[int, float] | None = None
+              ) -> tuple[PoseGraph, list[int]]:
         """The :class:`PoseGraph` at the current poses ``{id: T_WC (4, 4)}`` (every graph id needed) and its
-        node ids in order; ``metric``: the keyframes are metric (visual-inertial), so every node's log scale
-        gets an absolute prior of standard deviation ``sigma_metric_log_scale`` (a loop corrects their poses, not
-        their scale) and, when ``sigma_metric_gravity_rad`` > 0, its gravity direction one of that deviation.
+        node ids in order. Each metric keyframe's log scale gets an absolute prior of standard deviation
+        ``sigma_metric_log_scale`` (a loop corrects its pose, not its scale) and, when ``sigma_metric_gravity_rad``
+        > 0, its gravity direction one of that deviation. Keyframes from before the initialisation keep a free
+        scale: the vision-only map drifted in scale before it was aligned once as a whole, so a loop to one of
+        them measures that drift (a relative scale of several percent) and must not turn it into translation.
 
         ``units``: the keyframes' current depth units (product of the loop-correction scales applied so far,
         default 1). A loop edge measured when the units were ``u_a, u_b`` relates points ``X_b -> X_a``; with the
@@ -102,10 +110,11 @@ class KeyframePoseGraph:
         info = torch.cat([self.odometry[e][None] for e in odo] + [e.information.to(F64)[None] for e in self.loops])
         robust = torch.cat((torch.zeros(len(odo), dtype=torch.bool), torch.ones(len(self.loops), dtype=torch.bool)))
         scale_prior, gravity_prior = None, None
-        if metric:
-            scale_prior = torch.full((len(ids),), self.config.sigma_metric_log_scale ** -2, dtype=F64)
-        if metric and self.config.sigma_metric_gravity_rad > 0:
-            gravity_prior = torch.full((len(ids),), self.config.sigma_metric_gravity_rad ** -2, dtype=F64)
+        metric = torch.tensor([k in self.metric for k in ids], dtype=F64)
+        if self.metric:
+            scale_prior = metric * self.config.sigma_metric_log_scale ** -2
+        if self.metric and self.config.sigma_metric_gravity_rad > 0:
+            gravity_prior = metric * self.config.sigma_metric_gravity_rad ** -2
         return PoseGraph(S, ei, ej, meas, info, robust=robust, fixed=[0], scale_information=scale_prior,
                          gravity_information=gravity_prior), ids
 

@@ -16,9 +16,9 @@ Protocol (one duplex pipe, messages handled in order by the child, an ``inline``
   disparities' last revision when the keyframe left the frontend's window: :meth:`LoopClosureDriver.
   _current_views`). The child's detector keeps them on arrival (:meth:`LoopDetector.keep`, spilled to disk when
   old); the uniform depth scalings that follow travel as ``depth_scale``;
-* ``("keyframe", id, history_ids, information)``: :meth:`LoopClosure.add_keyframe` on the child's views; the
-  information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
-* ``("pgba", poses, metric)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
+* ``("keyframe", id, history_ids, information, metric)``: :meth:`LoopClosure.add_keyframe` on the child's
+  views; the information must be picklable (:class:`vigs_core.loop.driver.OdometryEdgeInformation` is);
+* ``("pgba", poses)``, ``("applied", scales)``, ``("sync",)``, ``("close",)``.
 
 The pipe, its sender thread (the caller waits only when the child lags far behind, reading the child's answers
 meanwhile) and the signal handling are :mod:`vigs_core.child_process`'s. Tensors travel as NumPy arrays
@@ -75,10 +75,9 @@ def _serve(conn: Any, closure: LoopClosure) -> None:
                     closure.detector.keep(view)
                     views[k] = view.bare()
             elif kind == "keyframe":
-                _, k, history, information = msg
-                closure.add_keyframe(views[k], [views[i] for i in history], information)
-            elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()},
-                                                           msg[2]):
+                _, k, history, information, metric = msg
+                closure.add_keyframe(views[k], [views[i] for i in history], information, metric)
+            elif kind == "pgba" and not closure.start_pgba({k: torch.from_numpy(T) for k, T in msg[1].items()}):
                 send(conn, ("result", None))
             elif kind == "applied":
                 closure.record_applied(msg[1])
@@ -153,7 +152,7 @@ class LoopClosureProcess:
 
     # ------------------------------------------------------------------ LoopClosure's caller side
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
-                     odometry_information: InformationSource = None) -> None:
+                     odometry_information: InformationSource = None, metric: bool = False) -> None:
         """Send the views not yet in the child or changed since (with what they carry, see the module docstring)
         and queue ``new`` for detection there."""
         changed = []   # (id, T_WC, disp or None, unit, image or None, revision, depth_scale)
@@ -164,7 +163,7 @@ class LoopClosureProcess:
                 self._sent[v.id] = v.T_WC
         if changed:
             self._post(("views", changed))
-        self._post(("keyframe", new.id, [v.id for v in history], odometry_information))
+        self._post(("keyframe", new.id, [v.id for v in history], odometry_information, metric))
 
     @property
     def pending(self) -> bool:
@@ -173,11 +172,11 @@ class LoopClosureProcess:
         self._drain()
         return self._found > self._covered and not self._in_flight and self._result is None
 
-    def start_pgba(self, poses: dict[int, torch.Tensor], metric: bool = False) -> bool:
+    def start_pgba(self, poses: dict[int, torch.Tensor]) -> bool:
         """Queue PGBA in the child when :attr:`pending`; True when queued."""
         if not self.pending:
             return False
-        self._post(("pgba", {k: host(T) for k, T in poses.items()}, metric))
+        self._post(("pgba", {k: host(T) for k, T in poses.items()}))
         self._covered = self._found   # until the child says which loops its graph held
         self._in_flight = True
         return True
