@@ -14,10 +14,11 @@ the graph's is not sampled) are recorded. Printed per process: peak RSS, RSS at 
 (``--warmup-s`` of wall time) and at the end (the last two samples, which can catch a process exiting, are left
 out), the slope after the warm-up (least squares, MB per minute of wall time; for ``vigs run`` only while it
 tracks, before the first sample at the final keyframe count, not while the mapper drains or the loop-closure child
-exits), and for ``vigs run`` the slope per keyframe; then the output sizes.
+exits), and for ``vigs run`` the slope per keyframe; then the output sizes. The run folders are removed after
+that unless ``--keep`` (the rendered bag stays in the cache).
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph | --no-run]
-                    [--params FILE] [--bag BAG] [--json OUT]
+                    [--params FILE] [--bag BAG] [--json OUT] [--keep]
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -152,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bag", help="run this bag instead of the procedural sequence (e.g. a hybrid EuRoC bag: a "
                                  "scene that is mostly new, for the growth per keyframe and per Gaussian)")
     p.add_argument("--json", help="write the results here")
+    p.add_argument("--keep", action="store_true", help="keep the run folders in the cache")
     args = p.parse_args(argv)
     cache = Path(args.cache)
     bag = Path(args.bag) if args.bag else render(args.duration, cache)
@@ -164,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
         series = runner(bag, out, args.sample_s)
         results[name] = {"wall_s": round(time.monotonic() - t0, 1), "processes": summarise(series, args.warmup_s),
                          "outputs_mb": sizes(out), "series": series}
+        if not args.keep:
+            shutil.rmtree(out)
         print(f"\n{name}: {results[name]['wall_s']} s wall, outputs {results[name]['outputs_mb']}")
         print(f"{'process':>20} {'peak MB':>8} {'warm MB':>8} {'end MB':>8} {'MB/min':>7} {'MB/kf':>6}")
         for proc_name, row in results[name]["processes"].items():
