@@ -218,7 +218,7 @@ class LoopClosure:
 
     def _detect(self, new: KeyframeView, history: list[KeyframeView]) -> None:
         t0 = time.perf_counter()
-        decision = self.detector.detect(new, history, self.graph.metric)
+        decision = self.detector.detect(new, history)
         with self._lock:
             if decision.candidates:
                 self.decisions[new.id] = decision

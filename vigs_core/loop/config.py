@@ -61,9 +61,6 @@ class LoopVerificationConfig:
         min_drift_m: the translation allowance of a loop between nearby keyframes, in map units.
         max_drift_rotation_deg: the loop's rotation correction of the current relative estimate at most.
         max_drift_log_scale: the loop's scale correction at most ``exp(+-this)``.
-        max_metric_log_scale: a loop between two keyframes created while the odometry was metric measures a
-            relative scale within ``exp(+-this)``: the IMU observed both scales, so a larger one means a depth map
-            is off, and the loop's translation is in its units (ours).
         information_scale: multiplies the dense two-view information (the dense residuals are correlated,
             so their Gauss-Newton information is over-confident; ours).
     """
@@ -80,7 +77,6 @@ class LoopVerificationConfig:
     min_drift_m: float = bounded(0.1, 0)
     max_drift_rotation_deg: float = bounded(20.0, 0, 180)
     max_drift_log_scale: float = bounded(0.5, 0)
-    max_metric_log_scale: float = bounded(0.05, 0)
     information_scale: float = bounded(0.01, 0, lo_open=True)
 
 

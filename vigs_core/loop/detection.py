@@ -18,9 +18,7 @@ A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (5
    by what odometry can have drifted over the path between the two keyframes (translation at most
    ``max_drift_fraction`` of the path length plus ``min_drift_m``, rotation and scale bounded). A repeated
    texture seen at another place along the path passes 1-4 (the images agree) but would claim a correction
-   of the whole distance travelled; a true loop after moderate drift does not. Between two keyframes whose
-   scale the IMU observed, the relative scale must be within ``max_metric_log_scale`` of 1: more means a depth
-   map is off, and the loop's translation is measured in its units.
+   of the whole distance travelled; a true loop after moderate drift does not.
 
 The best verified candidate (most inliers) becomes a loop edge ``(j, k, Z_jk, information)``.
 """
@@ -28,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Collection, Sequence
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -252,12 +250,10 @@ class LoopDetector:
             return f"loop scale correction exp({float(xi[6]):.2f}) beyond exp(+-{cfg.max_drift_log_scale})"
         return ""
 
-    def detect(self, new: KeyframeView, history: Sequence[KeyframeView],
-               metric: Collection[int] = ()) -> LoopDecision:
+    def detect(self, new: KeyframeView, history: Sequence[KeyframeView]) -> LoopDecision:
         """Look for a loop between ``new`` and the keyframes of ``history`` (all earlier keyframes, any order).
         Keeps what the views carry (:meth:`keep`) and ``new``'s thumbnail for later calls, where the views may
-        come without image and disparities. ``metric``: ids of keyframes whose scale the IMU observed; a loop
-        between two of them must measure a relative scale within ``max_metric_log_scale``."""
+        come without image and disparities."""
         cfg = self.detection
         for kf in (new, *history):
             self.keep(kf)
@@ -276,11 +272,6 @@ class LoopDetector:
             result = estimate_relative_sim3(self.depth(old), self.depth(new), ba, ab, self.grid, self.intr,
                                             self.verification)
             reason = result.reason if not result.accepted else self.drift_check(old, new, result.relative, history)
-            log_scale = float(torch.linalg.det(result.relative[:3, :3]).log()) / 3 if result.accepted else 0.0
-            if not reason and old.id in metric and new.id in metric and \
-                    abs(log_scale) > self.verification.max_metric_log_scale:
-                reason = (f"relative scale {math.exp(log_scale):.3f} between two metric keyframes (their depths "
-                          f"disagree)")
             if reason:
                 decision.rejected[old.id] = reason
                 continue
