@@ -138,6 +138,7 @@ def test_a_node_waiting_on_stopped_simulated_time_exits_on_a_signal_without_rclp
 
 SLOW_CLOSE_NODE = """
 import sys
+import time
 from vigs_ros.runtime import VigsNode, run_nodes
 
 class SlowClose(VigsNode):
@@ -150,8 +151,13 @@ class SlowClose(VigsNode):
         print("ready", flush=True)
 
     def close(self):
+        # short waits, as the mapper's drain checks between steps: a signal delivered to another thread does not
+        # interrupt a long wait of the main thread, where Python runs the handler that sets ``hurry``
         print("closing", flush=True)
-        print("hurried" if self.hurry.wait(10.0) else "not hurried", flush=True)
+        end = time.monotonic() + 10.0
+        while not self.hurry.wait(0.05) and time.monotonic() < end:
+            pass
+        print("hurried" if self.hurry.is_set() else "not hurried", flush=True)
 
 sys.exit(run_nodes([SlowClose], ["slow_close"]))
 """
