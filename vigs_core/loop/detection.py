@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
-from vigs_core.geometry import sim3_log, so3_log
+from vigs_core.geometry import se3_inverse, sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
 from vigs_core.solver import Intrinsics, reproject
@@ -218,14 +218,15 @@ class LoopDetector:
         weight = np.asarray(corr.weight, dtype=np.float64)
         return corr.mean_flow if weight.mean() > self.detection.min_mean_confidence else float("inf")
 
-    def _warped_correspondences(self, a: KeyframeView, b: KeyframeView
-                                ) -> tuple[TwoViewCorrespondences, TwoViewCorrespondences]:
-        """Dense correspondences ``a -> b`` and ``b -> a`` that measure a loop (module docstring, step 4): each
-        flow starts from the warp of its source grid at the current relative pose estimate (unknown depths warp
-        as points at infinity), and each serves as the other's forward-backward check. From zero flow, DIS fell
-        short of the large displacements of wide-baseline loops, and the measured loop was too short."""
-        T_cw = torch.linalg.inv(torch.stack([a.T_WC, b.T_WC]).to(F64))
-        disp = positive_reciprocal(torch.stack([self.depth(a), self.depth(b)]))
+    def _warped_correspondences(self, a: KeyframeView, b: KeyframeView, depth_a: torch.Tensor,
+                                depth_b: torch.Tensor) -> tuple[TwoViewCorrespondences, TwoViewCorrespondences]:
+        """Dense correspondences ``a -> b`` and ``b -> a`` that measure a loop (module docstring, step 4), given
+        the keyframes' grid depths (:meth:`depth`): each flow starts from the warp of its source grid at the
+        current relative pose estimate (unknown depths warp as points at infinity), and each serves as the
+        other's forward-backward check. From zero flow, DIS fell short of the large displacements of
+        wide-baseline loops, and the measured loop was too short."""
+        T_cw = se3_inverse(torch.stack([a.T_WC, b.T_WC]).to(F64))
+        disp = positive_reciprocal(torch.stack([depth_a, depth_b]))
         warp = reproject(T_cw, T_cw.flip(0), disp, self._coords, self.intr)
         targets = torch.where(warp.valid[..., None], warp.uv, float("nan")).numpy()
         ab, ba = self.estimator.estimate_pair(self.image(a), self.image(b), targets[0], targets[1])
@@ -263,14 +264,16 @@ class LoopDetector:
             return decision
         history = sorted(history, key=lambda kf: kf.id)
         best: tuple[TwoViewResult, KeyframeView] | None = None
+        depth_new = None
         for old in self.candidates(new, history):
             if self._mean_flow(new, old) >= cfg.max_mean_flow_px:
                 continue
             decision.candidates.append(old.id)
-            ba, ab = self._warped_correspondences(old, new)
+            depth_old = self.depth(old)   # read once (an old keyframe's may come from the spill on disk)
+            depth_new = self.depth(new) if depth_new is None else depth_new
+            ba, ab = self._warped_correspondences(old, new, depth_old, depth_new)
             # a = old, b = new: Z = S_old^{-1} S_new
-            result = estimate_relative_sim3(self.depth(old), self.depth(new), ba, ab, self.grid, self.intr,
-                                            self.verification)
+            result = estimate_relative_sim3(depth_old, depth_new, ba, ab, self.grid, self.intr, self.verification)
             reason = result.reason if not result.accepted else self.drift_check(old, new, result.relative, history)
             if reason:
                 decision.rejected[old.id] = reason
