@@ -138,3 +138,21 @@ def test_a_wide_baseline_loop_is_measured_at_its_full_length():
     truth = (torch.linalg.inv(T_old) @ T_new)[:3, 3]
     measured = decision.accepted.relative[:3, 3]
     assert float((measured - truth).norm()) < 0.02 * float(truth.norm()), (measured, truth)
+
+
+def test_only_candidates_within_the_check_rotation_get_dense_flow():
+    """Of the ranked candidates, one whose estimated relative rotation exceeds ``max_check_rotation_deg`` gets no
+    flow (it could not pass the flow and drift tests together), one within it does; the orientation test
+    (120 deg) alone would give both a flow check."""
+    new = view(100, 0.0, [0.0, 0.0, 1.5])
+    near, far = view(0, 30.0, [0.0, 0.0, 1.5]), view(1, 70.0, [0.0, 0.0, 1.5])
+    detector = LoopDetector(DISFlowEstimator(GRID), INTR)
+    assert {kf.id for kf in detector.candidates(new, [near, far])} == {0}
+    wide = LoopDetector(DISFlowEstimator(GRID), INTR, LoopDetectionConfig(max_check_rotation_deg=120.0))
+    assert {kf.id for kf in wide.candidates(new, [near, far])} == {0, 1}
+
+    calls = []
+    estimate = detector.estimator.estimate
+    detector.estimator.estimate = lambda *a, **k: calls.append(1) or estimate(*a, **k)
+    detector.detect(new, [near, far])
+    assert len(calls) == 1   # the zero-flow test of the candidate within the bound only

@@ -5,7 +5,9 @@ A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (5
 1. orientation: the current estimates' relative rotation angle ``theta = |Log(R_k^T R_j)|`` must be below
    120 deg, tested for all old keyframes at once through ``cos theta = (tr(R_k^T R_j) - 1) / 2``;
 2. appearance ranking (ours, to bound the cost): the survivors are ranked by the correlation of small
-   zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences ``k -> j``;
+   zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences ``k -> j``, those
+   whose estimated relative rotation is within ``max_check_rotation_deg`` (a candidate beyond it could not
+   pass steps 3 and 5 together);
 3. flow: a candidate needs a confidence-weighted mean flow magnitude ``k -> j`` below 22 px (and a mean
    confidence above ``min_mean_confidence``);
 4. verification (:func:`vigs_core.loop.two_view.estimate_relative_sim3`): dense two-view consistency in both
@@ -201,15 +203,16 @@ class LoopDetector:
         self._disps.close()
 
     def candidates(self, new: KeyframeView, history: Sequence[KeyframeView]) -> list[KeyframeView]:
-        """Keyframes of ``history`` old enough and within the orientation bound, best thumbnail match first,
-        at most ``max_flow_checks``."""
+        """Keyframes of ``history`` old enough and within the orientation bound, best thumbnail match first:
+        of the best ``max_flow_checks``, those within ``max_check_rotation_deg``."""
         cfg = self.detection
         old = [kf for kf in history if kf.id <= new.id - cfg.min_keyframe_gap]
         cos_max = math.cos(math.radians(cfg.max_orientation_deg))
-        old = [kf for kf, c in zip(old, rotation_cosines(new.T_WC, [kf.T_WC for kf in old])) if c > cos_max]
+        ranked = [(kf, c) for kf, c in zip(old, rotation_cosines(new.T_WC, [kf.T_WC for kf in old])) if c > cos_max]
         t_new = self._thumb(new)
-        old.sort(key=lambda kf: -float(self._thumb(kf) @ t_new))
-        return old[:cfg.max_flow_checks]
+        ranked.sort(key=lambda kc: -float(self._thumb(kc[0]) @ t_new))
+        cos_check = math.cos(math.radians(cfg.max_check_rotation_deg))
+        return [kf for kf, c in ranked[:cfg.max_flow_checks] if c > cos_check]
 
     def _mean_flow(self, src: KeyframeView, dst: KeyframeView) -> float:
         """Mean flow ``src -> dst`` of dense correspondences from zero flow (which the estimator passes to DIS
