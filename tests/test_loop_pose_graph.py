@@ -2,11 +2,12 @@
 import math
 
 import numpy as np
+import scipy.sparse
 import torch
 
 from vigs_core.geometry import sim3_exp, sim3_from_srt, sim3_inverse, sim3_log, so3_exp
 from vigs_core.loop import PoseGraph, PoseGraphConfig, optimize_pose_graph
-from vigs_core.loop.pose_graph import _residuals
+from vigs_core.loop.pose_graph import _residuals, _solve_spd
 
 D = torch.float64
 
@@ -153,3 +154,16 @@ def test_gravity_prior_keeps_roll_and_pitch_while_a_loop_corrects_yaw_and_positi
     err_before = (poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max()
     assert (held.poses[:, :3, 3] - truth[:, :3, 3]).norm(dim=1).max() < 0.5 * err_before
     assert held.final_cost < held.initial_cost
+
+
+def test_the_damped_system_solve_returns_the_step_or_none_when_singular():
+    """The symmetric-mode factorisation gives ``-A^-1 b`` for a positive definite ``A`` and None (damp more)
+    where ``A`` is singular, instead of a step of NaNs."""
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(14, 14))
+    A = scipy.sparse.csc_matrix(M @ M.T + 14 * np.eye(14))
+    b = rng.normal(size=14)
+    assert np.allclose(_solve_spd(A, b).numpy(), -np.linalg.solve(A.toarray(), b), atol=1e-12)
+    singular = A.toarray()
+    singular[3, :] = singular[:, 3] = 0.0
+    assert _solve_spd(scipy.sparse.csc_matrix(singular), b) is None
