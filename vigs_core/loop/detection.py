@@ -6,8 +6,8 @@ A new keyframe ``k`` is compared with keyframes at least ``min_keyframe_gap`` (5
    120 deg, tested for all old keyframes at once through ``cos theta = (tr(R_k^T R_j) - 1) / 2``;
 2. appearance ranking (ours, to bound the cost): the survivors are ranked by the correlation of small
    zero-mean grey thumbnails and the best ``max_flow_checks`` get dense correspondences ``k -> j``, those
-   whose estimated relative rotation is within ``max_check_rotation_deg`` (a candidate beyond it could not
-   pass steps 3 and 5 together);
+   whose estimated relative rotation is within ``max_check_rotation_deg`` (beyond it, step 5 would need a true
+   relative rotation that step 3's flow bound practically rules out);
 3. flow: a candidate needs a confidence-weighted mean flow magnitude ``k -> j`` below 22 px (and a mean
    confidence above ``min_mean_confidence``);
 4. verification (:func:`vigs_core.loop.two_view.estimate_relative_sim3`): dense two-view consistency in both
