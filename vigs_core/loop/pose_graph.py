@@ -219,26 +219,19 @@ def optimize_pose_graph(graph: PoseGraph, config: PoseGraphConfig | None = None)
             shape=(dim, dim)).tocsc()  # duplicate entries are summed
         h_diag = np.maximum(h.diagonal(), 1e-12)
         new_cost = float("inf")
-        while True:
-            damped = (h + scipy.sparse.diags(damping * h_diag)).tocsc()
-            step = _solve_spd(damped, b.numpy())
-            if step is None:   # numerically singular: damp more
-                damping *= 10.0
-                if damping > 1e12:
+        while damping <= 1e12:
+            step = _solve_spd((h + scipy.sparse.diags(damping * h_diag)).tocsc(), b.numpy())
+            if step is not None:   # None: numerically singular, damp more
+                trial = poses.clone()
+                trial[free] = sim3_exp(step.view(-1, 7)) @ poses[free]
+                r_trial = _residuals(graph, trial)
+                w_trial, c_trial = _robust_weights(graph, r_trial, config.huber_delta)
+                new_cost = float(c_trial.sum()) + prior_cost(trial)
+                if new_cost < cost:
+                    poses, r, w = trial, r_trial, w_trial
+                    damping = max(damping / 10.0, 1e-12)
                     break
-                continue
-            trial = poses.clone()
-            trial[free] = sim3_exp(step.view(-1, 7)) @ poses[free]
-            r_trial = _residuals(graph, trial)
-            w_trial, c_trial = _robust_weights(graph, r_trial, config.huber_delta)
-            new_cost = float(c_trial.sum()) + prior_cost(trial)
-            if new_cost < cost:
-                poses, r, w = trial, r_trial, w_trial
-                damping = max(damping / 10.0, 1e-12)
-                break
             damping *= 10.0
-            if damping > 1e12:
-                break
         decrease = (cost - new_cost) / max(cost, 1e-300) if new_cost < cost else 0.0
         cost = min(cost, new_cost)
         costs.append(cost)
