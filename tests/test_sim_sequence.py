@@ -92,6 +92,23 @@ def test_vigs_sim_procedural_with_synthesised_imu_and_seeds(tmp_path):
     assert _files(tmp_path / "a") != _files(tmp_path / "b")  # another scene seed, another sequence
 
 
+def test_vigs_sim_procedural_speed_runs_the_same_path_faster(tmp_path):
+    base = ["sim", "--procedural", "--procedural-duration", "2", "--no-depth", "--noise-free-imu", *SMALL]
+    assert main([*base, "--duration", "0.6", "--asl", str(tmp_path / "x1")]) == 0
+    assert main([*base, "--duration", "0.3", "--procedural-speed", "2", "--asl", str(tmp_path / "x2")]) == 0
+    a, b = (read_tum(tmp_path / name / "groundtruth_tum.txt") for name in ("x1", "x2"))
+    ta, tb = (a.t_ns - a.t_ns[0]) * 1e-9, (b.t_ns - b.t_ns[0]) * 1e-9
+    inside = 2 * tb <= ta[-1]
+    for k in range(3):   # the speed-2 path at t is the speed-1 path at 2 t
+        assert np.allclose(b.position[inside, k], np.interp(2 * tb[inside], ta, a.position[:, k]), atol=1e-4)
+    assert np.linalg.norm(np.diff(b.position, axis=0), axis=1).sum() > 1.9 * np.linalg.norm(
+        np.diff(a.position[ta <= 0.3], axis=0), axis=1).sum()
+    ia, ib = EurocSequence(tmp_path / "x1").imu, EurocSequence(tmp_path / "x2").imu
+    rate_a = np.interp(2 * (ib.t_ns - ib.t_ns[0]) * 1e-9, (ia.t_ns - ia.t_ns[0]) * 1e-9, np.linalg.norm(ia.gyro, axis=1))
+    assert np.allclose(np.linalg.norm(ib.gyro, axis=1)[:50], 2 * rate_a[:50], rtol=0.02, atol=1e-3)
+    assert main([*base, "--procedural-speed", "0", "--asl", str(tmp_path / "x0")]) == 2
+
+
 def test_vigs_sim_rejects_bad_arguments(tmp_path, capsys):
     assert main(["sim", "--procedural", "--no-progress"]) == 2
     assert "--asl" in capsys.readouterr().err

@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--imu", help="real IMU CSV (EuRoC imu0/data.csv format) for --trajectory")
     src.add_argument("--procedural", action="store_true", help="built-in procedural motion with synthesised IMU")
     src.add_argument("--procedural-duration", type=float, default=30.0, help="length of the procedural motion (s)")
+    src.add_argument("--procedural-speed", type=float, default=1.0,
+                     help="time scale of the procedural motion: its periods divided by this (2: twice the speeds and "
+                          "rotation rates, four times the accelerations, over the same path)")
     cal = parser.add_argument_group("sensors")
     cal.add_argument("--camera", help="camera calibration: EuRoC sensor.yaml or Kalibr camchain (default: EuRoC cam0)")
     cal.add_argument("--imu-yaml", help="IMU noise: EuRoC sensor.yaml or Kalibr imu.yaml (default: EuRoC ADIS16448)")
@@ -124,7 +127,13 @@ def run(args: argparse.Namespace) -> int:
             SplineMotion(read_trajectory(args.trajectory)), noise, args.imu_rate, args.noise_seed, args.noise_free_imu
         )
     else:
-        shape = ProceduralConfig(duration_s=args.procedural_duration)
+        if not args.procedural_speed > 0:
+            print(f"vigs sim: --procedural-speed {args.procedural_speed}; expected > 0", file=sys.stderr)
+            return 2
+        base = ProceduralConfig()
+        shape = ProceduralConfig(duration_s=args.procedural_duration,
+                                 min_period_s=base.min_period_s / args.procedural_speed,
+                                 max_period_s=base.max_period_s / args.procedural_speed)
         motion = ProceduralMotion(args.seed, calibration.T_BS[:3, :3], shape)
         source = synthetic_source(motion, noise, args.imu_rate, args.noise_seed, args.noise_free_imu)
     degrade = DegradeConfig(
