@@ -23,11 +23,30 @@ def test_ssim_closed_forms():
     # constant images: variances vanish, SSIM = (2ab + C1) / (a^2 + b^2 + C1)
     a, b, c1 = 0.3, 0.6, 0.01**2
     expected = (2 * a * b + c1) / (a * a + b * b + c1)
-    assert math.isclose(ssim(torch.full((16, 16), a), torch.full((16, 16), b)), expected, rel_tol=1e-9)
+    # (the statistics are blurred in float32: a constant's variance comes out about 1e-8 instead of 0)
+    assert math.isclose(ssim(torch.full((16, 16), a), torch.full((16, 16), b)), expected, rel_tol=1e-5)
     noisy = (img + 0.2 * torch.randn(32, 40, generator=torch.Generator().manual_seed(2))).clamp(0, 1)
     assert 0.0 < ssim(noisy, img) < 0.9
+    # a colour image against the float64 definition (Wang et al. 2004: 11x11 Gaussian, 'valid' positions)
+    rgb = torch.rand(24, 30, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    ref = (rgb + 0.1 * torch.randn(24, 30, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64))
+    assert math.isclose(ssim(rgb, ref), _ssim_float64(rgb, ref), rel_tol=1e-5)
     with pytest.raises(ValueError, match="same shape"):
         ssim(img, img[:-1])
+
+
+def _ssim_float64(a: torch.Tensor, b: torch.Tensor) -> float:
+    """SSIM written out with an explicit 11x11 window (float64 conv2d), the reference for the fast version."""
+    x = torch.arange(11, dtype=torch.float64) - 5.0
+    g = torch.exp(-0.5 * (x / 1.5) ** 2)
+    w = (g[:, None] * g[None, :] / g.sum() ** 2)[None, None]
+    a, b = (t.permute(2, 0, 1)[:, None] for t in (a, b))   # (C, 1, H, W)
+    blur = lambda t: torch.nn.functional.conv2d(t, w)   # noqa: E731 - 'valid' positions
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a ** 2, blur(b * b) - mu_b ** 2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return float(s.mean())
 
 
 def test_gaussians_from_depth_lie_on_the_unprojected_surface():
