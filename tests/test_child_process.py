@@ -1,7 +1,7 @@
 """A worker child's signals: a SIGTERM sent to the parent's process group while the child still starts (imports
 its modules, not yet in a group of its own) does not end it; once started, a SIGTERM to the child itself does.
 The sender's queue is bounded: the caller waits for a lagging child, reading its answers meanwhile, and not for one
-that ended."""
+that ended. A deferred child gets what was posted before its start, in order."""
 import os
 import signal
 import threading
@@ -108,3 +108,31 @@ def test_post_does_not_wait_for_a_child_that_ended():
         assert time.perf_counter() - t0 < 5
     finally:
         channel.close(timeout_s=5)
+
+
+def test_a_deferred_child_gets_the_earlier_messages_first_and_one_never_started_leaves_no_process():
+    channel = ChildChannel(_slow_reader, (0.0,), "vigs-test", start=False)
+    try:
+        for i in range(3):
+            channel.post(("data", i, bytes(1000)))
+        assert not channel.started and channel.process.pid is None
+        channel.start()
+        channel.post(("data", 3, bytes(1000)))
+        channel.post(("end",))
+        assert channel.receive() == ("got", [0, 1, 2, 3])
+    finally:
+        channel.close(timeout_s=5)
+    idle = ChildChannel(_slow_reader, (0.0,), "vigs-test", start=False)
+    idle.post(("data", 0, bytes(1000)))
+    idle.close()
+    assert idle.process.pid is None and idle.conn.closed
+    # the held messages stay within the queue's bound: a post past it starts the child
+    bounded = ChildChannel(_slow_reader, (0.0,), "vigs-test", max_queued_bytes=250_000, start=False)
+    try:
+        for i in range(4):
+            bounded.post(("data", i, bytes(100_000)))
+        assert bounded.started and bounded.queued_bytes <= 250_000
+        bounded.post(("end",))
+        assert bounded.receive() == ("got", [0, 1, 2, 3])
+    finally:
+        bounded.close(timeout_s=5)

@@ -131,9 +131,13 @@ class BrokenInformation:
 def test_worker_process_hands_its_errors_to_the_caller():
     odo = small_odometry(2)
     views = keyframe_views([odo.keyframes[0], odo.keyframes[1]], [1.0, 1.0], [True, True], [True, True])
-    closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
+    # the child starts at the second keyframe (the keyframe gap): the first one's messages wait for it
+    closure = LoopClosureProcess(LoopConfig(detection=LoopDetectionConfig(min_keyframe_gap=2)), GRID,
+                                 DISFlowEstimator(GRID).config, INTR)
     closure.add_keyframe(views[0], [])
+    assert not closure._channel.started and closure.wait() is None
     closure.add_keyframe(views[1], views[:1], BrokenInformation())
+    assert closure._channel.started
     with pytest.raises(RuntimeError, match="broken information"):
         closure.wait()
     assert not closure.pending and closure.poll() is None   # reported once; the worker goes on
@@ -141,8 +145,20 @@ def test_worker_process_hands_its_errors_to_the_caller():
     assert closure.stats.loops_found == 0
 
 
+def test_a_worker_process_is_started_only_once_loops_are_possible():
+    odo = small_odometry(2)
+    views = keyframe_views([odo.keyframes[0], odo.keyframes[1]], [1.0, 1.0], [True, True], [True, True])
+    closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)   # keyframe gap 55
+    closure.add_keyframe(views[0], [])
+    closure.add_keyframe(views[1], views[:1])
+    assert not closure.pending and closure.wait() is None and closure.poll() is None
+    closure.close()
+    assert closure._channel.process.pid is None and closure.stats.loops_found == 0
+
+
 def test_a_dead_worker_process_is_reported():
-    closure = LoopClosureProcess(LoopConfig(), GRID, DISFlowEstimator(GRID).config, INTR)
+    closure = LoopClosureProcess(LoopConfig(detection=LoopDetectionConfig(min_keyframe_gap=0)), GRID,
+                                 DISFlowEstimator(GRID).config, INTR)
     closure._channel.process.kill()
     closure._channel.process.join()
     with pytest.raises(RuntimeError, match="loop-closure process ended"):

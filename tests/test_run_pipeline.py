@@ -128,8 +128,12 @@ def test_vigs_run_on_asl_folder_writes_outputs(sequence, tmp_path, capsys):
 
 def test_vigs_run_with_loop_closure_in_its_worker_process(sequence, tmp_path):
     """Loop closure on (by default in a child process): the run completes with the worker closed at the end, its
-    counters and its peak memory reported, and the odometry as accurate as without it (no loop to find)."""
-    report, _ = _vigs_run(sequence, tmp_path, "    imu:\n      enabled: false\n    mapping:\n      enabled: false\n")
+    counters and its peak memory reported, and the odometry as accurate as without it (no loop to find). The worker
+    starts at the keyframe gap's keyframe (a run with fewer keyframes never starts it): a gap of 5 here, the run's
+    keyframe count, so that it starts at the last keyframe, which has no candidate old enough."""
+    report, _ = _vigs_run(sequence, tmp_path, "    imu:\n      enabled: false\n    mapping:\n      enabled: false\n"
+                          "    loop:\n      detection:\n        min_keyframe_gap: 5\n")
+    assert report["keyframes"] == 5
     assert report["frames_posed"] == N and report["accuracy"]["ate_rmse"] < 0.03
     assert report["loop"]["loops_found"] == 0 and report["loop"]["corrections_applied"] == 0
     assert report["peak_rss_mb_worker_process"] > 50   # a Python process with torch imported
@@ -300,8 +304,9 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     cmd = [sys.executable, "-c", "import signal, sys; from vigs_cli.main import main; "
            "signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit(main())",
            "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--params", str(tmp_path / "p.yaml")]
-    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n"
-                                     f"    mapping: {{enabled: {str(mapping).lower()}}}\n")
+    (tmp_path / "p.yaml").write_text("frontend:\n  ros__parameters:\n"   # the loop worker started by frame 100
+                                     f"    mapping: {{enabled: {str(mapping).lower()}}}\n"
+                                     "    loop: {detection: {min_keyframe_gap: 3}}\n")
     proc, seen = run_until_frame(cmd, 100, own_group=group)
     children = psutil.Process(proc.pid).children(recursive=True)
     if group:

@@ -104,6 +104,9 @@ class ChildChannel:
         max_queued_bytes: what the sender's queue may hold before :meth:`post` waits (module docstring).
         while_waiting: called repeatedly while :meth:`post` waits, to read what the child sends unasked (None:
             the child only answers calls, which the caller reads after posting them).
+        start: start the child now; False defers it to :meth:`start` (a worker that cannot be useful yet): the
+            messages posted meanwhile are kept, pickled, and written first, in order, and a post that takes
+            them past ``max_queued_bytes`` starts the child.
 
     Attributes:
         process: the child (``multiprocessing.Process``).
@@ -113,10 +116,27 @@ class ChildChannel:
     """
 
     def __init__(self, target: Callable[..., None], args: tuple, name: str, max_queued_bytes: int = MAX_QUEUED_BYTES,
-                 while_waiting: Callable[[], None] | None = None) -> None:
+                 while_waiting: Callable[[], None] | None = None, start: bool = True) -> None:
         ctx = mp.get_context("spawn")
-        self.conn, child_conn = ctx.Pipe()
-        self.process = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
+        self.conn, self._child_conn = ctx.Pipe()
+        self.process = ctx.Process(target=target, args=(self._child_conn, *args), name=name, daemon=True)
+        self.max_queued_bytes = max_queued_bytes
+        self.waited_s = 0.0
+        self._while_waiting = while_waiting
+        self._outbox: queue.Queue = queue.Queue()
+        self._queued_bytes = 0
+        self._count_lock = threading.Lock()
+        self._written = threading.Event()
+        self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
+        self.started = False
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start the child and the sender thread (once; the messages posted before go first)."""
+        if self.started:
+            return
+        self.started = True
         # blocked across the start (a blocked signal stays blocked in the new program): a Ctrl-C or a SIGTERM to the
         # group while the child still imports its modules, before enter_child, would otherwise end it. The start
         # launches multiprocessing's resource tracker the first time, which unblocks both after launching it: so
@@ -132,15 +152,7 @@ class ChildChannel:
             signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
             if preload is not None:
                 os.environ["LD_PRELOAD"] = preload
-        child_conn.close()
-        self.max_queued_bytes = max_queued_bytes
-        self.waited_s = 0.0
-        self._while_waiting = while_waiting
-        self._outbox: queue.Queue = queue.Queue()
-        self._queued_bytes = 0
-        self._count_lock = threading.Lock()
-        self._written = threading.Event()
-        self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
+        self._child_conn.close()
         self._sender.start()
 
     @property
@@ -150,13 +162,15 @@ class ChildChannel:
 
     def post(self, msg: tuple) -> None:
         """Queue ``msg`` for the child (pickled now, on the caller's thread); then, while the queue holds more than
-        ``max_queued_bytes`` and the child reads, wait (calling ``while_waiting``)."""
+        ``max_queued_bytes`` and the child reads, wait (calling ``while_waiting``). A deferred child is started
+        first when the queue would pass the bound."""
         data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
         with self._count_lock:
             self._queued_bytes += len(data)
         self._outbox.put(data)
         if self._queued_bytes <= self.max_queued_bytes:
             return
+        self.start()
         t0 = time.perf_counter()
         while self._queued_bytes > self.max_queued_bytes and self._sender.is_alive():
             if self._while_waiting is not None:
@@ -167,6 +181,8 @@ class ChildChannel:
 
     def receive(self) -> tuple:
         """The child's next message; :class:`ChildProcessEnded` when the child is gone."""
+        if not self.started:
+            raise RuntimeError("ChildChannel.receive: the child was not started")
         try:
             return receive(self.conn)
         except (EOFError, OSError) as err:
@@ -175,7 +191,11 @@ class ChildChannel:
 
     def close(self, timeout_s: float = 10.0) -> None:
         """After the child was told to end (or ended): stop the sender, wait for the child (terminated after
-        ``timeout_s``) and close the pipe."""
+        ``timeout_s``) and close the pipe. A child never started is not started; its messages are dropped."""
+        if not self.started:
+            self._child_conn.close()
+            self.conn.close()
+            return
         self._outbox.put(None)
         self._sender.join()
         self.process.join(timeout=timeout_s)

@@ -7,7 +7,9 @@ lock with tracking. Its Python-heavy work (two-view refinement, PGBA's small ten
 wait for the lock: on hybrid MH_03 (vision only) the main thread took 145 s with the loop thread against 118 s
 without loop closure, although the worker needs well under one core. A child process shares no lock with
 tracking; it runs at a lower scheduling priority (``LoopConfig.process_nice``) so that on a saturated machine
-tracking keeps its core and loop closure uses what is left.
+tracking keeps its core and loop closure uses what is left. The child is started at the ``min_keyframe_gap``-th
+keyframe, the first that could have a loop candidate (the messages before wait pickled in the caller, within the
+channel's bound): a shorter run, such as the shipped sample, does not pay for a second interpreter importing torch.
 
 Protocol (one duplex pipe, messages handled in order by the child, an ``inline`` :class:`LoopClosure` there):
 
@@ -108,8 +110,10 @@ class LoopClosureProcess:
         self.config = config
         self.stats = LoopStats()
         self.units: dict[int, float] = {}
+        # started once loops become possible (min_keyframe_gap keyframes): a shorter run never pays for the child
         self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure",
-                                     while_waiting=self._drain)
+                                     while_waiting=self._drain, start=config.detection.min_keyframe_gap == 0)
+        self._keyframes = 0
         self._sent: dict[int, torch.Tensor] = {}   # id -> the pose tensor of the view last sent
         self._found = 0
         self._covered = 0
@@ -154,7 +158,11 @@ class LoopClosureProcess:
     def add_keyframe(self, new: KeyframeView, history: Sequence[KeyframeView],
                      odometry_information: InformationSource = None, metric: bool = False) -> None:
         """Send the views not yet in the child or changed since (with what they carry, see the module docstring)
-        and queue ``new`` for detection there."""
+        and queue ``new`` for detection there (the child is started at the ``min_keyframe_gap``-th keyframe, the
+        first that could have a loop candidate; the earlier ones wait here, pickled)."""
+        self._keyframes += 1
+        if self._keyframes >= self.config.detection.min_keyframe_gap:
+            self._channel.start()
         changed = []   # (id, T_WC, disp or None, unit, image or None, revision, depth_scale)
         for v in (*history, new):
             if self._sent.get(v.id) is not v.T_WC or v.disp is not None or v.image is not None:
@@ -202,6 +210,8 @@ class LoopClosureProcess:
 
     def wait(self) -> PGBAResult | None:
         """Block until the child has handled every message sent so far, then :meth:`poll`."""
+        if not self._channel.started:   # nothing can have been found yet
+            return self.poll()
         self._post(("sync",))
         self._await("synced")
         return self.poll()
@@ -209,7 +219,7 @@ class LoopClosureProcess:
     def close(self) -> None:
         """Let the child finish its queue and exit."""
         try:
-            if self._channel.process.is_alive():
+            if self._channel.started and self._channel.process.is_alive():
                 self._post(("close",))
                 self._await("closed")
         finally:
