@@ -113,6 +113,7 @@ class ChildChannel:
         conn: the caller's end of the pipe (``poll``); reading goes through :meth:`receive`, writing through
             :meth:`post`.
         waited_s: seconds :meth:`post` waited for room in the queue.
+        started: whether the child was started.
     """
 
     def __init__(self, target: Callable[..., None], args: tuple, name: str, max_queued_bytes: int = MAX_QUEUED_BYTES,
