@@ -126,13 +126,18 @@ def test_a_deferred_child_gets_the_earlier_messages_first_and_one_never_started_
     idle.post(("data", 0, bytes(1000)))
     idle.close()
     assert idle.process.pid is None and idle.conn.closed
-    # the held messages stay within the queue's bound: a post past it starts the child
-    bounded = ChildChannel(_slow_reader, (0.0,), "vigs-test", max_queued_bytes=250_000, start=False)
+    # a deferred start's backlog does not make the caller wait; what is queued beyond it does, down to the bound
+    backlog = ChildChannel(_slow_reader, (0.05,), "vigs-test", max_queued_bytes=250_000, start=False)
     try:
-        for i in range(4):
-            bounded.post(("data", i, bytes(100_000)))
-        assert bounded.started and bounded.queued_bytes <= 250_000
-        bounded.post(("end",))
-        assert bounded.receive() == ("got", [0, 1, 2, 3])
+        for i in range(6):
+            backlog.post(("data", i, bytes(100_000)))
+        assert not backlog.started and backlog.queued_bytes > 600_000 and backlog.waited_s == 0
+        backlog.start()
+        for i in range(6, 10):   # beyond the backlog not yet written, the usual bound
+            backlog.post(("data", i, bytes(100_000)))
+            assert backlog.queued_bytes <= 250_000 + backlog._backlog
+        assert backlog.waited_s > 0 and backlog._backlog < 600_000
+        backlog.post(("end",))
+        assert backlog.receive() == ("got", list(range(10)))
     finally:
-        bounded.close(timeout_s=5)
+        backlog.close(timeout_s=5)

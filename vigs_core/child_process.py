@@ -105,8 +105,9 @@ class ChildChannel:
         while_waiting: called repeatedly while :meth:`post` waits, to read what the child sends unasked (None:
             the child only answers calls, which the caller reads after posting them).
         start: start the child now; False defers it to :meth:`start` (a worker that cannot be useful yet): the
-            messages posted meanwhile are kept, pickled, and written first, in order, and a post that takes
-            them past ``max_queued_bytes`` starts the child.
+            messages posted meanwhile are kept, pickled, and written first, in order. That backlog is the caller's
+            to bound (the loop-closure caller's is its first keyframes' messages); :meth:`post` waits only for
+            what is queued beyond the part of it not yet written.
 
     Attributes:
         process: the child (``multiprocessing.Process``).
@@ -126,6 +127,7 @@ class ChildChannel:
         self._while_waiting = while_waiting
         self._outbox: queue.Queue = queue.Queue()
         self._queued_bytes = 0
+        self._backlog = 0   # bytes of a deferred start's backlog not written yet (not waited for)
         self._count_lock = threading.Lock()
         self._written = threading.Event()
         self._sender = threading.Thread(target=self._write, name=f"{name}-sender", daemon=True)
@@ -138,6 +140,8 @@ class ChildChannel:
         if self.started:
             return
         self.started = True
+        with self._count_lock:
+            self._backlog = self._queued_bytes
         # blocked across the start (a blocked signal stays blocked in the new program): a Ctrl-C or a SIGTERM to the
         # group while the child still imports its modules, before enter_child, would otherwise end it. The start
         # launches multiprocessing's resource tracker the first time, which unblocks both after launching it: so
@@ -163,17 +167,16 @@ class ChildChannel:
 
     def post(self, msg: tuple) -> None:
         """Queue ``msg`` for the child (pickled now, on the caller's thread); then, while the queue holds more than
-        ``max_queued_bytes`` and the child reads, wait (calling ``while_waiting``). A deferred child is started
-        first when the queue would pass the bound."""
+        ``max_queued_bytes`` beyond a deferred start's backlog not yet written (see the class) and the child reads,
+        wait (calling ``while_waiting``); a child not started yet is not waited for."""
         data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
         with self._count_lock:
             self._queued_bytes += len(data)
         self._outbox.put(data)
-        if self._queued_bytes <= self.max_queued_bytes:
+        if not self.started or self._queued_bytes <= self.max_queued_bytes + self._backlog:
             return
-        self.start()
         t0 = time.perf_counter()
-        while self._queued_bytes > self.max_queued_bytes and self._sender.is_alive():
+        while self._queued_bytes > self.max_queued_bytes + self._backlog and self._sender.is_alive():
             if self._while_waiting is not None:
                 self._while_waiting()
             self._written.wait(0.05)
@@ -213,4 +216,5 @@ class ChildChannel:
                 return
             with self._count_lock:
                 self._queued_bytes -= len(data)
+                self._backlog = max(0, self._backlog - len(data))
             self._written.set()
