@@ -8,8 +8,9 @@ wait for the lock: on hybrid MH_03 (vision only) the main thread took 145 s with
 without loop closure, although the worker needs well under one core. A child process shares no lock with
 tracking; it runs at a lower scheduling priority (``LoopConfig.process_nice``) so that on a saturated machine
 tracking keeps its core and loop closure uses what is left. The child is started at the ``min_keyframe_gap``-th
-keyframe, the first that could have a loop candidate (the messages before wait pickled in the caller, within the
-channel's bound): a shorter run, such as the shipped sample, does not pay for a second interpreter importing torch.
+keyframe, the first that could have a loop candidate (the messages before wait pickled in the caller, about 10 MB
+at 376x240, and are written first): a shorter run, such as the shipped sample, does not pay for a second interpreter
+importing torch.
 
 Protocol (one duplex pipe, messages handled in order by the child, an ``inline`` :class:`LoopClosure` there):
 
