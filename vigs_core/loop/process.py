@@ -114,7 +114,6 @@ class LoopClosureProcess:
         # started once loops become possible (min_keyframe_gap keyframes): a shorter run never pays for the child
         self._channel = ChildChannel(_child, (config, grid, flow, intrinsics), "vigs-loop-closure",
                                      while_waiting=self._drain, start=config.detection.min_keyframe_gap == 0)
-        self._keyframes = 0
         self._sent: dict[int, torch.Tensor] = {}   # id -> the pose tensor of the view last sent
         self._found = 0
         self._covered = 0
@@ -161,9 +160,6 @@ class LoopClosureProcess:
         """Send the views not yet in the child or changed since (with what they carry, see the module docstring)
         and queue ``new`` for detection there (the child is started at the ``min_keyframe_gap``-th keyframe, the
         first that could have a loop candidate; the earlier ones wait here, pickled)."""
-        self._keyframes += 1
-        if self._keyframes >= self.config.detection.min_keyframe_gap:
-            self._channel.start()
         changed = []   # (id, T_WC, disp or None, unit, image or None, revision, depth_scale)
         for v in (*history, new):
             if self._sent.get(v.id) is not v.T_WC or v.disp is not None or v.image is not None:
@@ -173,6 +169,8 @@ class LoopClosureProcess:
         if changed:
             self._post(("views", changed))
         self._post(("keyframe", new.id, [v.id for v in history], odometry_information, metric))
+        if len(self._sent) >= self.config.detection.min_keyframe_gap:   # every keyframe so far has been sent
+            self._channel.start()
 
     @property
     def pending(self) -> bool:

@@ -46,13 +46,10 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, peak: float = 1.0, window: int = 
     if min(a.shape[:2]) < window:
         raise ValueError(f"ssim needs images of at least {window}x{window} px, got {tuple(a.shape[:2])}")
     a, b = (x.reshape(x.shape[0], x.shape[1], -1).to(torch.float32).numpy() for x in (a, b))
-    x = np.arange(window) - (window - 1) / 2.0
-    g = np.exp(-0.5 * (x / sigma) ** 2)
-    g = (g / g.sum()).astype(np.float32)
+    g = cv2.getGaussianKernel(window, sigma, cv2.CV_32F)   # normalised to sum 1
     r, c = window // 2, a.shape[2]
-    stats = np.concatenate([a, b, a * a, b * b, a * b], axis=2)
-    blurred = cv2.sepFilter2D(stats, -1, g, g, borderType=cv2.BORDER_REFLECT)
-    blurred = blurred.reshape(*blurred.shape[:2], -1)[r:a.shape[0] - r, r:a.shape[1] - r].astype(np.float64)
+    stats = np.concatenate([a, b, a * a, b * b, a * b], axis=2)   # (H, W, 5 C)
+    blurred = cv2.sepFilter2D(stats, -1, g, g, borderType=cv2.BORDER_REFLECT)[r:-r, r:-r].astype(np.float64)
     mu_a, mu_b, aa, bb, ab = (blurred[..., k * c:(k + 1) * c] for k in range(5))
     c1, c2 = (0.01 * peak) ** 2, (0.03 * peak) ** 2
     var_a, var_b, cov = aa - mu_a ** 2, bb - mu_b ** 2, ab - mu_a * mu_b
