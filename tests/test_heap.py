@@ -2,6 +2,8 @@
 :mod:`vigs_core.heap` do nothing under another one, and worker children do not inherit a preloaded one."""
 import ctypes.util
 import os
+import subprocess
+import sys
 
 from vigs_core import heap
 from vigs_core.child_process import ChildChannel, enter_child, send
@@ -51,3 +53,33 @@ def test_a_worker_child_of_a_process_with_jemalloc_preloaded_uses_glibc(monkeypa
         assert channel.receive() == ("libc", "")
     finally:
         channel.close(timeout_s=5)
+
+
+ARENAS = """
+import ctypes, sys, threading
+from vigs_core import heap
+if sys.argv[1] == "single":
+    assert heap.single_arena()
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+together = threading.Barrier(4)
+def work():
+    together.wait()
+    libc.malloc(1 << 16)   # kept: the thread's heap stays in use
+    together.wait()
+threads = [threading.Thread(target=work) for _ in range(4)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+libc.malloc_stats()   # one "Arena N:" paragraph per heap, on stderr
+"""
+
+
+def _arenas(mode: str) -> int:
+    out = subprocess.run([sys.executable, "-c", ARENAS, mode], capture_output=True, text=True, check=True,
+                         env={**os.environ, "LD_PRELOAD": ""})
+    return sum(line.startswith("Arena ") for line in out.stderr.splitlines())
+
+
+def test_single_arena_serves_every_thread_from_the_main_heap():
+    assert _arenas("default") > 1    # glibc's default: a heap for each thread that allocates
+    assert _arenas("single") == 1

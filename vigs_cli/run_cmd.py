@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vigs_core.heap import single_arena
+
+    single_arena()   # before the run starts its threads (frame reader, senders to the workers)
     from vigs_core.mapping.process import MappingProcessError
     from vigs_core.system import apply_overrides, load_config, run_pipeline
 

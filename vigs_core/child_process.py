@@ -19,7 +19,8 @@ a second importing its modules) is discarded there. A SIGTERM to the child itsel
 terminates its daemon children so at the parent's exit), and so does the pipe closing (the parent died). Its
 process name (``/proc/PID/comm``) tells ``ps`` and ``vigs bench soak`` which worker it is: spawned children all
 run the same command line. A malloc preloaded for the caller (jemalloc) is not preloaded for the child
-(:func:`vigs_core.heap.worker_preload`).
+(:func:`vigs_core.heap.worker_preload`); glibc's serves all of the child's threads from one heap
+(:func:`vigs_core.heap.single_arena`).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ import time
 from multiprocessing import resource_tracker
 from typing import Any, Callable, Iterator
 
-from vigs_core.heap import worker_preload
+from vigs_core.heap import single_arena, worker_preload
 
 _PR_SET_NAME = 15   # prctl(2)
 MAX_QUEUED_BYTES = 8 << 20
@@ -50,11 +51,12 @@ class ChildProcessEnded(RuntimeError):
 def enter_child(name: str, nice: int = 0) -> None:
     """First step of a worker child: its own process group, SIGINT ignored, SIGTERM unblocked (a SIGTERM sent to the
     parent's group before this point is discarded: setting a pending signal to ignored drops it), the process name
-    ``name``, the niceness increment ``nice``, and one thread each for torch and OpenCV (the workers share 2 cores
-    with tracking)."""
+    ``name``, the niceness increment ``nice``, one thread each for torch and OpenCV (the workers share 2 cores
+    with tracking), and one malloc heap for its threads (:func:`vigs_core.heap.single_arena`)."""
     import cv2
     import torch
 
+    single_arena()
     os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)

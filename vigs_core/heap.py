@@ -1,7 +1,8 @@
 """glibc malloc policies for processes whose large temporaries interleave with long-lived small state.
 
-Two opposite choices, each for one kind of process (process-wide; no-ops returning False where the C library is
-not glibc or another malloc was preloaded, :func:`allocator`):
+Process-wide policies, no-ops returning False where the C library is not glibc or another malloc was preloaded
+(:func:`allocator`). Every process of ours takes :func:`single_arena`; then one of two opposite choices, each for
+one kind of process:
 
 * :func:`retain_freed_heap` for the Gaussian mapper, whose every step allocates and frees tens of megabytes:
   keeping them in the heap avoids a page fault per 4 KiB on the next step;
@@ -17,7 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 # glibc mallopt parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -2, -3, -8
 _MALLOCS = ("jemalloc", "tcmalloc")   # mallocs that a process may preload instead of glibc's
 
 
@@ -56,6 +57,18 @@ def _mallopt() -> Callable[[int, int], int] | None:
         return None
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     return mallopt
+
+
+def single_arena() -> bool:
+    """Serve every thread of this process from glibc's main heap (``M_ARENA_MAX`` 1; the ``MALLOC_ARENA_MAX=1``
+    of the environment, set from inside). By default each new thread that allocates gets a heap of its own (up to
+    eight per core), and each keeps its own fragments between the blocks that live for the whole run: on the
+    procedural soak that made the tracking process and the mapper child grow about twice as fast per keyframe
+    (docs/benchmarks.md, issue 19). Our threads (frame reader, senders, the mapper's worker, executors) allocate
+    little concurrently, so sharing one heap's lock costs little. Call it before the process starts threads:
+    a thread that has allocated keeps its heap."""
+    mallopt = _mallopt()
+    return mallopt is not None and mallopt(_M_ARENA_MAX, 1) == 1
 
 
 def retain_freed_heap() -> bool:

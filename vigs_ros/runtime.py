@@ -22,6 +22,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 
+from vigs_core.heap import single_arena
 from vigs_ros.params import ParamSpec
 
 
@@ -264,6 +265,7 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    single_arena()   # before rclpy.init starts the middleware's threads and the executor its own
     rclpy.init(args=sys.argv if args is None else args, context=context,
                signal_handler_options=SignalHandlerOptions.ALL)
     code = 0
