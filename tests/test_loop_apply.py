@@ -154,6 +154,7 @@ def test_a_worker_process_is_started_only_once_loops_are_possible():
     assert not closure.pending and closure.wait() is None and closure.poll() is None
     closure.close()
     assert closure._channel.process.pid is None and closure.stats.loops_found == 0
+    assert closure.stats.process_peak_rss_mb is None   # no process, no memory to report
 
 
 def test_a_dead_worker_process_is_reported():

@@ -14,6 +14,7 @@ one kind of process:
 from __future__ import annotations
 
 import ctypes
+import resource
 from pathlib import Path
 from typing import Callable
 
@@ -36,6 +37,12 @@ def allocator(maps: str | None = None) -> str:
         if f"/lib{name}" in maps:
             return name
     return "libc"
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process, MiB (Linux ``ru_maxrss`` is in KiB). Each worker child reports its
+    own: the parent's ``RUSAGE_CHILDREN`` covers only children already ended, and only the largest of them."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def worker_preload(preload: str) -> str:

@@ -48,7 +48,8 @@ class LoopStats:
     """Counters and timings for the run report: candidates passing detection, loops accepted and rejected
     (with the reasons of the first rejections), PGBA runs and the seconds of each, detection seconds in total, and
     the seconds the caller waited for a worker process that lagged behind (:class:`~vigs_core.child_process.
-    ChildChannel`; 0 with a thread)."""
+    ChildChannel`; 0 with a thread) and that process's peak resident memory (None without one, or before it
+    closed)."""
 
     candidates: int = 0
     loops_found: int = 0
@@ -59,6 +60,7 @@ class LoopStats:
     accepted_pairs: list[tuple[int, int]] = field(default_factory=list)
     rejection_reasons: list[str] = field(default_factory=list)
     queue_wait_seconds: float = 0.0
+    process_peak_rss_mb: float | None = None
 
     def as_dict(self) -> dict:
         n = len(self.pgba_seconds)
@@ -72,6 +74,7 @@ class LoopStats:
             "pgba_seconds_max": max(self.pgba_seconds) if n else 0.0,
             "detection_seconds": self.detection_seconds,
             "queue_wait_seconds": self.queue_wait_seconds,
+            "process_peak_rss_mb": self.process_peak_rss_mb,
             "rejection_reasons": self.rejection_reasons[:20],
         }
 

@@ -31,7 +31,7 @@ thread on hybrid MH_03 before).
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
-job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`). Loops are pending while
+job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`, with its own peak memory). Loops are pending while
 ``loops_found > loops_covered``.
 """
 from __future__ import annotations
@@ -46,7 +46,7 @@ from vigs_core.arrays import host
 from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
-from vigs_core.heap import map_large_blocks
+from vigs_core.heap import map_large_blocks, peak_rss_mb
 from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig
 from vigs_core.loop.detection import KeyframeView
@@ -93,6 +93,7 @@ def _serve(conn: Any, closure: LoopClosure) -> None:
             send(conn, ("error", traceback.format_exc()))
         send(conn, ("state", closure.stats.loops_found, covered))
         if kind in ("sync", "close"):
+            closure.stats.process_peak_rss_mb = round(peak_rss_mb(), 1)
             send(conn, ("synced" if kind == "sync" else "closed", closure.stats))
         if kind == "close":
             return

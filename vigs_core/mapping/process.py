@@ -30,6 +30,7 @@ import torch
 
 from vigs_core.arrays import host
 from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
+from vigs_core.heap import peak_rss_mb
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.mapper import GaussianMapper, MapperConfig, MapperSummary
 
@@ -48,6 +49,7 @@ _CALLS: dict[str, Callable[..., Any]] = {
     "save": GaussianMapper.save,
     "snapshot": GaussianMapper.snapshot,
     "close": GaussianMapper.close,
+    "peak_rss_mb": lambda mapper: peak_rss_mb(),
 }
 
 
@@ -136,6 +138,10 @@ class MapperProcess:
     def drain(self, seconds: float) -> int:
         """After :meth:`stop`: insert what is queued without refinement for at most ``seconds``; events left."""
         return self._call("drain", float(seconds))
+
+    def peak_rss_mb(self) -> float:
+        """The child process's peak resident memory so far, MiB (:func:`vigs_core.heap.peak_rss_mb`)."""
+        return self._call("peak_rss_mb")
 
     def summary(self) -> MapperSummary:
         """Counters and sizes of the child's mapper."""

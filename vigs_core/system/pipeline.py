@@ -11,8 +11,8 @@ Outputs in the output folder:
 * ``odometry.txt``: TUM body poses as output causally while running (camera-rate odometry);
 * ``keyframes.txt``: TUM body poses of the keyframes;
 * ``frame_status.txt``: with the IMU, every processed frame's estimator status (:mod:`vigs_core.io.frame_status`);
-* ``report.json``: counts, seconds per stage, frames/s, peak memory (this process, and the loop-closure
-  process as ``peak_rss_mb_worker_process``; the mapping process still runs then), accuracy (Sim(3)-aligned
+* ``report.json``: counts, seconds per stage, frames/s, peak memory (``peak_rss_mb``: this process; each worker
+  process its own, ``loop.process_peak_rss_mb`` and ``mapping.process_peak_rss_mb``), accuracy (Sim(3)-aligned
   ATE and recall against the ground truth sampled at the frame times).
 * ``report.html``: figures (``report_figures/``) of the trajectory against the ground truth, the error over time,
   scale and biases, time per stage, keyframes and loops (:mod:`vigs_core.eval.report_html`; written last, a
@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import signal
 import sys
 import threading
@@ -64,7 +63,7 @@ import torch
 
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import interpolate_poses, matrix_to_quat
-from vigs_core.heap import allocator
+from vigs_core.heap import allocator, peak_rss_mb
 from vigs_core.imu.samples import ordered_samples
 from vigs_core.loop import LoopClosureDriver
 from vigs_core.mapping.process import MapperProcess, MappingProcessError
@@ -156,12 +155,6 @@ def load_frames(path: str | Path, width: int, height: int, duration_s: float | N
     if not inside.any():
         raise ValueError(f"{path}: no frame lies inside the ground truth's time span")
     return LoadedFrames(seq, pre.camera, t_ns[inside], np.stack(images)[inside], gt.matrices())
-
-
-def peak_rss_mb(who: int = resource.RUSAGE_SELF) -> float:
-    """Peak resident memory of this process (``RUSAGE_CHILDREN``: of its largest finished child process, e.g. the
-    loop-closure worker), MiB (Linux ``ru_maxrss`` is in KiB)."""
-    return resource.getrusage(who).ru_maxrss / 1024.0
 
 
 def _reference(gt: Trajectory, frame_t_ns: np.ndarray, T_BX: np.ndarray | None = None) -> Trajectory:
@@ -507,8 +500,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
         "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
-        "peak_rss_mb": round(peak_rss_mb(), 1),
-        "peak_rss_mb_worker_process": round(peak_rss_mb(resource.RUSAGE_CHILDREN), 1), "allocator": allocator(),
+        "peak_rss_mb": round(peak_rss_mb(), 1), "allocator": allocator(),
         "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
         "bad_frames": bad_frames,
     }
@@ -526,6 +518,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
                 report["mapping"] = mapping.evaluate(t_ns, T_WC)
             if isinstance(mapping.mapper, MapperProcess):   # tracking waited for a mapping process that lagged
                 report["mapping"]["queue_wait_seconds"] = round(mapping.mapper.channel.waited_s, 3)
+                report["mapping"]["process_peak_rss_mb"] = round(mapping.mapper.peak_rss_mb(), 1)
         except MappingProcessError as err:   # the trajectory and the report are still written, then it is raised
             print(f"vigs run: {err}\nvigs run: no map is written", file=sys.stderr)
             report["mapping"] = {"error": str(err).splitlines()[0]}
