@@ -6,7 +6,9 @@ one room, so the scene is revisited), written once as a ROS 2 bag into ``--cache
 loop closure on:
 
 * ``vigs run BAG`` (one process plus its loop-closure and mapping children);
-* ``vigs launch --bag BAG --fast`` (the node processes; the replay waits for the frontend).
+* ``vigs launch --bag BAG --fast`` (the node processes; the replay waits for the frontend), or with
+  ``--realtime`` at the recorded rate, as a robot's sensors give it: its MB per minute of wall time is then per
+  minute of the mission.
 
 Every ``--sample-s`` seconds the RSS of the run's processes (by role: the run or its node name, the loop-closure
 and mapping workers by their process names) and the frontend's keyframe count (from the progress of ``vigs run``;
@@ -18,7 +20,7 @@ exits), and for ``vigs run`` the slope per keyframe; then the output sizes. The 
 that unless ``--keep`` (the rendered bag stays in the cache).
 
     vigs bench soak [--duration 1800] [--warmup-s 300] [--sample-s 10] [--cache out/soak] [--no-graph | --no-run]
-                    [--params FILE] [--bag BAG] [--json OUT] [--keep]
+                    [--realtime] [--params FILE] [--bag BAG] [--json OUT] [--keep]
 """
 from __future__ import annotations
 
@@ -124,7 +126,7 @@ def run_vigs_run(bag: Path, out: Path, period_s: float, params: str | None = Non
     return series
 
 
-def run_graph(bag: Path, out: Path, period_s: float) -> dict[str, list]:
+def run_graph(bag: Path, out: Path, period_s: float, realtime: bool = False) -> dict[str, list]:
     sys.path.insert(0, str(ROOT / "tests"))
     from ros_helpers import isolated_env
 
@@ -132,7 +134,8 @@ def run_graph(bag: Path, out: Path, period_s: float) -> dict[str, list]:
     params = out / "params.yaml"
     params.write_text(f"frontend:\n  ros__parameters:\n    output_dir: {out}\n"
                       f"mapper:\n  ros__parameters:\n    map_path: {out / 'map.ply'}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(bag), "--fast",
+    rate = [] if realtime else ["--fast"]
+    proc = subprocess.Popen([sys.executable, "-m", "vigs_cli.main", "launch", "--bag", str(bag), *rate,
                              "--params", str(params), "--settle", "5"], cwd=ROOT, env=isolated_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return sample(proc, "launcher", period_s, {})
@@ -150,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache", default=str(ROOT / "out" / "soak"), help="the rendered bag and the run outputs")
     p.add_argument("--no-graph", action="store_true", help="only vigs run")
     p.add_argument("--no-run", action="store_true", help="only the graph")
+    p.add_argument("--realtime", action="store_true", help="the graph's replay at the recorded rate (not --fast)")
     p.add_argument("--params", help="vigs run's --params (the graph runs the shipped parameters)")
     p.add_argument("--bag", help="run this bag instead of the procedural sequence (e.g. a hybrid EuRoC bag: a "
                                  "scene that is mostly new, for the growth per keyframe and per Gaussian)")
@@ -160,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     bag = Path(args.bag) if args.bag else render(args.duration, cache)
     results = {}
     runs = [] if args.no_run else [("vigs run", lambda b, o, s: run_vigs_run(b, o, s, args.params))]
-    runs += [] if args.no_graph else [("graph", run_graph)]
+    runs += [] if args.no_graph else [("graph", lambda b, o, s: run_graph(b, o, s, args.realtime))]
     for name, runner in runs:
         out = Path(tempfile.mkdtemp(prefix=name.replace(" ", "_") + "_", dir=cache))
         t0 = time.monotonic()
