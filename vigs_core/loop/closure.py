@@ -48,8 +48,8 @@ class LoopStats:
     """Counters and timings for the run report: candidates passing detection, loops accepted and rejected
     (with the reasons of the first rejections), PGBA runs and the seconds of each, detection seconds in total, and
     the seconds the caller waited for a worker process that lagged behind (:class:`~vigs_core.child_process.
-    ChildChannel`; 0 with a thread) and that process's peak resident memory (None without one, or before it
-    closed)."""
+    ChildChannel`; 0 with a thread) and that process's peak resident memory, MiB (None without one, or before
+    it synced or closed)."""
 
     candidates: int = 0
     loops_found: int = 0

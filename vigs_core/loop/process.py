@@ -31,8 +31,8 @@ thread on hybrid MH_03 before).
 
 The child answers every message with ``("state", loops_found, loops_covered)`` (``loops_covered``: the loops
 in the graph of the last PGBA it started), ``("result", PGBAResult)`` after a PGBA, ``("error", text)`` when a
-job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`, with its own peak memory). Loops are pending while
-``loops_found > loops_covered``.
+job raised, and ``("synced", stats)`` / ``("closed", stats)`` (its :class:`LoopStats`, with the child's own peak
+memory). Loops are pending while ``loops_found > loops_covered``.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The Gaussian mapper in a child process: the caller side of :class:`~vigs_core.mapping.mapper.GaussianMapper`
 that ``vigs run`` and loop closure use (``add_keyframe``, ``update_keyframe_poses``, ``wait_idle``, ``stop``,
-``drain``, ``summary``, ``evaluate``, ``refine``, ``save``, ``snapshot``, ``close``), with the mapper and its
-worker thread in a separate Python process.
+``drain``, ``summary``, ``evaluate``, ``refine``, ``save``, ``snapshot``, ``close``, and the child's
+``peak_rss_mb``), with the mapper and its worker thread in a separate Python process.
 
 Why a process: as a thread of the tracking process the mapper's Python work (step scheduling, densification,
 the optimiser's bookkeeping) takes the interpreter lock from tracking between its compiled kernels, and its
