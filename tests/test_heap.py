@@ -83,3 +83,26 @@ def _arenas(mode: str) -> int:
 def test_single_arena_serves_every_thread_from_the_main_heap():
     assert _arenas("default") > 1    # glibc's default: a heap for each thread that allocates
     assert _arenas("single") == 1
+
+
+def test_peak_rss_is_this_process_high_water_mark():
+    status = "Name:\tpython\nVmPeak:\t 2000000 kB\nVmHWM:\t  524288 kB\nVmRSS:\t  400000 kB\n"
+    assert heap.peak_rss_mb(status) == 512.0
+    assert 10 < heap.peak_rss_mb() < 100_000   # this process, read from /proc
+
+
+PEAK = """
+import subprocess, sys
+from vigs_core import heap
+held = bytearray(300 << 20)   # 300 MB resident in the caller when it starts the child
+child = subprocess.run([sys.executable, "-c", "from vigs_core import heap; print(heap.peak_rss_mb())"],
+                       capture_output=True, text=True, check=True)
+print(heap.peak_rss_mb(), float(child.stdout))
+"""
+
+
+def test_a_started_process_does_not_report_its_callers_memory():
+    # Linux carries ru_maxrss across exec: a child forked from a large caller would report the caller's size
+    out = subprocess.run([sys.executable, "-c", PEAK], capture_output=True, text=True, check=True)
+    caller, child = map(float, out.stdout.split())
+    assert caller > 300 and child < caller - 200

@@ -39,9 +39,20 @@ def allocator(maps: str | None = None) -> str:
     return "libc"
 
 
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process, MiB (Linux ``ru_maxrss`` is in KiB). Each worker child reports its
-    own: the parent's ``RUSAGE_CHILDREN`` covers only children already ended, and only the largest of them."""
+def peak_rss_mb(status: str | None = None) -> float:
+    """Peak resident memory of this process, MiB: ``VmHWM`` of ``status`` (the text of ``/proc/self/status``, read
+    when None), ``ru_maxrss`` without ``/proc``. Not ``ru_maxrss`` where ``/proc`` is there: Linux carries it
+    across ``exec``, so a spawned worker's would start at what the caller held when it forked the worker. Each
+    worker child reports its own: the caller's ``RUSAGE_CHILDREN`` covers only children already ended, and only
+    the largest of them."""
+    if status is None:
+        try:
+            status = Path("/proc/self/status").read_text()
+        except OSError:
+            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    for line in status.splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0   # kB
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
