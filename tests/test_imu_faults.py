@@ -24,7 +24,9 @@ from vigs_core.system import OdometryStream, PipelineConfig
 from vigs_core.system.pipeline import groundtruth_at, poses_to_trajectory
 from vigs_core.system.sources import open_input
 from vigs_core.types import ImuSamples
-from vigs_core.vio.odometry import METRIC_STATUSES
+from vigs_core.imu.preintegration import preintegrate_intervals
+from vigs_core.vio import odometry as vio_odometry
+from vigs_core.vio.odometry import METRIC_STATUSES, batches_up_to
 
 GAP_START_S = 13.0
 GAP_S = 2.0
@@ -85,6 +87,35 @@ def test_velocities_of_settled_frames_do_not_need_the_imu_behind_the_window(clea
     assert np.array_equal(t, t_cut) and (t < start).sum() > 300
     assert np.isfinite(v.numpy()).sum() > 0.9 * v.numel()
     np.testing.assert_allclose(v_cut.numpy(), v.numpy(), atol=1e-12)
+
+
+def test_batches_keep_order_and_bound_their_sums():
+    lengths = np.array([3, 4, 2, 9, 1, 1, 5])
+    groups = batches_up_to(lengths, 7)
+    assert [g.tolist() for g in groups] == [[0, 1], [2], [3], [4, 5, 6]]   # 9 > 7 alone
+    assert batches_up_to(np.array([], dtype=np.int64), 7) == []
+
+
+def test_velocity_increments_in_bounded_batches_are_the_same(clean, monkeypatch):
+    """At the world alignment the frames tracked before it get their velocity increments at once (hundreds of
+    seconds of IMU behind sparse keyframes on a long sequence); they are preintegrated in batches of at most
+    ``INCREMENT_BATCH_S`` of IMU, with the same values."""
+    _, (_, _, stream) = clean
+    odo = stream.odometry
+    frames = [f for f in odo.frames if f.ref in odo.vio.states and f.t_ns != odo.vio.states[f.ref].t_ns]
+    refs, stamps = [f.ref for f in frames], np.array([f.t_ns for f in frames])
+    whole = odo._velocity_increments(refs, stamps)
+    calls = []
+
+    def counted(imu, t0, *args, **kwargs):
+        calls.append(len(t0))
+        return preintegrate_intervals(imu, t0, *args, **kwargs)
+
+    monkeypatch.setattr(vio_odometry, "INCREMENT_BATCH_S", 1.0)
+    monkeypatch.setattr(vio_odometry, "preintegrate_intervals", counted)
+    batched = odo._velocity_increments(refs, stamps)
+    assert len(calls) > 3 and sum(calls) == np.isfinite(whole[:, 0]).sum() > 300
+    np.testing.assert_allclose(batched, whole, rtol=0, atol=1e-12)
 
 
 def test_an_imu_gap_is_not_integrated_across(clean):
