@@ -49,11 +49,9 @@ def peak_rss_mb(status: str | None = None) -> float:
         try:
             status = Path("/proc/self/status").read_text()
         except OSError:
-            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    for line in status.splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0   # kB
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+            status = ""
+    hwm = [line.split()[1] for line in status.splitlines() if line.startswith("VmHWM:")]
+    return int(hwm[0]) / 1024.0 if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def worker_preload(preload: str) -> str:
