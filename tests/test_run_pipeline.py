@@ -191,11 +191,34 @@ def test_vigs_run_rejects_bad_params_in_one_line_naming_file_and_key(tmp_path, c
 @pytest.mark.parametrize("option, value, says", [
     ("--stride", "0", "parameter frame_stride: expected a value in [1, inf), got 0"),
     ("--max-frames", "-5", "parameter max_frames: expected a value in [0, inf), got -5"),
+    ("--refine", "-1", "parameter mapping.final_refine_iterations: expected a value in [0, inf), got -1"),
 ])
 def test_vigs_run_checks_its_options_as_parameters(tmp_path, capsys, option, value, says):
     assert vigs_main(["run", str(tmp_path), option, value, "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"vigs run: bad {option}: ") and says in err and err.count("\n") == 1, err
+
+
+def test_vigs_run_refine_overrides_the_parameter_file(tmp_path, monkeypatch):
+    """``--refine N`` sets ``mapping.final_refine_iterations`` over what ``--params`` says; the file's other
+    mapping settings stay."""
+    import vigs_core.system
+
+    params = tmp_path / "p.yaml"
+    params.write_text("frontend:\n  ros__parameters:\n    mapping: {final_refine_iterations: 30, eval_stride: 7}\n")
+    seen = {}
+
+    def fake_run(input_path, cfg, out_dir, **kwargs):
+        seen["cfg"] = cfg
+        return {"frames": 0, "frames_posed": 0, "keyframes": 0, "frames_per_s": 0.0, "peak_rss_mb": 0.0}
+
+    monkeypatch.setattr(vigs_core.system, "run_pipeline", fake_run)
+    assert vigs_main(["run", str(tmp_path), "--params", str(params), "--refine", "2000", "--out",
+                      str(tmp_path / "o"), "--no-progress"]) == 0
+    assert seen["cfg"].mapping.final_refine_iterations == 2000 and seen["cfg"].mapping.eval_stride == 7
+    assert vigs_main(["run", str(tmp_path), "--params", str(params), "--out", str(tmp_path / "o"),
+                      "--no-progress"]) == 0
+    assert seen["cfg"].mapping.final_refine_iterations == 30
 
 
 def test_vigs_run_rejects_bad_input(tmp_path):

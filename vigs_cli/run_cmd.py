@@ -17,6 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--stride", type=int, help="use every n-th frame")
     parser.add_argument("--image-topic", help="bag image topic (default: found by message type)")
+    parser.add_argument("--refine", type=int, metavar="N",
+                        help="colour-refinement iterations of the map after the run (default: the parameters' "
+                             "mapping.final_refine_iterations, 100); each takes about 20-30 ms of CPU, and an "
+                             "offline map gains from thousands (docs/benchmarks.md, issue 23)")
     parser.add_argument("--frames-from", metavar="FILE",
                         help="process only the frames whose stamps (ns, first column) FILE lists, each at the yield "
                              "point of the second column if any, and skip the rest: the frontend node's "
@@ -42,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"vigs run: bad --params: {err}", file=sys.stderr)
         return 2
     options = {"max_frames": ("--max-frames", args.max_frames), "frame_stride": ("--stride", args.stride),
-               "image_topic": ("--image-topic", args.image_topic)}
+               "image_topic": ("--image-topic", args.image_topic),
+               "mapping": ("--refine", None if args.refine is None else {"final_refine_iterations": args.refine})}
     for key, (option, value) in options.items():
         if value is None:
             continue
