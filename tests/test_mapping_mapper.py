@@ -58,7 +58,7 @@ def test_mapper_renders_unseen_views_and_reports_deltas(tmp_path):
         out = mapper.render(T)
         assert out.color.shape == (64, 96, 3)
         assert psnr(out.color, image) > 25.0, f"view at angle {a}"
-        assert float(out.alpha.mean()) > 0.9
+        assert float(out.alpha.mean()) > 0.88   # the view at 0.75: 0.900 with depth on every step, 0.899 without
 
     mapper.save(tmp_path / "map.ply")
     gmap, doc = load_map(tmp_path / "map.ply")
@@ -283,6 +283,20 @@ def test_the_default_schedule_keeps_revisiting_keyframes_that_left_the_window():
         for j in schedule:
             later[j] += j <= k - c.window
     assert min(later[:50]) >= 3, later[:50]
+
+
+@pytest.mark.parametrize("revisit", [0.0, 0.05])
+def test_depth_weighs_on_a_new_keyframes_window_and_revisits_get_their_own_weight(monkeypatch, revisit):
+    """A new keyframe's steps on its local window (itself and the ``window - 1`` before it) use ``lambda_depth``;
+    the steps on older keyframes drawn from outside it use ``lambda_depth_revisit``."""
+    mapper = _mapper(iterations=10, window=3, global_keyframes=6, lambda_depth=0.1, lambda_depth_revisit=revisit)
+    _feed(mapper, [0.1 * i for i in range(8)])
+    steps = []
+    monkeypatch.setattr(mapper, "_optimise_on", lambda kf, lambda_depth: steps.append((kf.id, lambda_depth)))
+    mapper.process_pending()
+    last = steps[-10:]   # the eighth keyframe's: window {5, 6, 7}, revisits drawn from 0..4
+    assert {k for k, _ in last} & {0, 1, 2, 3, 4} and {k for k, _ in last} >= {5, 6, 7}
+    assert all(lam == (0.1 if k in (5, 6, 7) else revisit) for k, lam in last), last
 
 
 def test_a_mapper_behind_keeps_up_with_the_newest_keyframes_and_maps_the_rest_when_idle():

@@ -73,7 +73,11 @@ class MapperConfig:
         init_stride: pixel stride (at render resolution) when unprojecting depth into Gaussians.
         init_scale: initial standard deviation in pixel spacings (see ``gaussians_from_depth``).
         lambda_color: weight of the L1 colour term.
-        lambda_depth: weight of the L1 depth term (metres).
+        lambda_depth: weight of the L1 depth term (metres) on the steps of a new keyframe's local window.
+        lambda_depth_revisit: weight of the depth term on the steps that revisit older keyframes (the random
+            ones from outside the window, the idle steps). Their depth was imposed while they were in the window;
+            colour alone then keeps their views without pulling the surfaces back to the frontend's coarse depth
+            grid, as the final refinement does (docs/benchmarks.md, issue 23).
         lambda_iso: weight of the isotropic regulariser.
         lr_means: Adam step for means, metres.
         lr_log_scales: Adam step for log scales.
@@ -112,6 +116,7 @@ class MapperConfig:
     init_scale: float = bounded(0.5, 0, lo_open=True)
     lambda_color: float = bounded(0.9, 0)
     lambda_depth: float = bounded(0.1, 0)
+    lambda_depth_revisit: float = bounded(0.0, 0)
     lambda_iso: float = bounded(10.0, 0)
     lr_means: float = bounded(1e-3, 0)
     lr_log_scales: float = bounded(5e-3, 0)
@@ -497,10 +502,11 @@ class GaussianMapper:
             self._move_keyframes(event[1], event[2])
 
     def _idle_step(self) -> None:
-        """One optimisation step (colour and depth) on a keyframe drawn uniformly from the mapped ones."""
+        """One optimisation step on a keyframe drawn uniformly from the mapped ones (a revisit:
+        ``lambda_depth_revisit``)."""
         with self._lock:
             kf = self.keyframes[self._rng.choice(sorted(self.keyframes))]
-            self._optimise_on(kf, self.config.lambda_depth)
+            self._optimise_on(kf, self.config.lambda_depth_revisit)
         self.stats.idle_steps += 1
 
     def _view(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> tuple[torch.Tensor, ...]:
@@ -561,11 +567,13 @@ class GaussianMapper:
             self._next_id += len(new)
             self._append(new)
         steps = 0
+        window = self._window(kf.id)
         for kf_step in self._schedule(kf.id) if optimise else ():
             if self._inbox.full() or self._stop.is_set():   # behind, or shutting down: the rest waits
                 break
             with self._lock:
-                self._optimise_on(self.keyframes[kf_step], c.lambda_depth)
+                self._optimise_on(self.keyframes[kf_step],
+                                  c.lambda_depth if kf_step in window else c.lambda_depth_revisit)
             self._let_readers_in()
             steps += 1
         with self._lock:
@@ -575,16 +583,21 @@ class GaussianMapper:
         self.stats.cut_short += steps < c.iterations
         self.stats.mapping_seconds += time.perf_counter() - t0
 
-    def _schedule(self, new_id: int) -> list[int]:
-        """Keyframe ids for the ``iterations`` steps: the new keyframe first, then the rest of its local
-        window (the ``window`` keyframes up to it: the most recent ones, unless it was deferred) and
-        ``global_keyframes`` random others, shuffled, cycled to length ``iterations``."""
-        c = self.config
+    def _window(self, new_id: int) -> list[int]:
+        """The local window of keyframe ``new_id``: the ``window`` keyframes up to it (the most recent ones, unless
+        it was deferred), itself last."""
         ids = sorted(self.keyframes)
         end = ids.index(new_id) + 1
-        start = max(0, end - c.window)
-        window = ids[start : end - 1]
-        older = ids[:start] + ids[end:]
+        return ids[max(0, end - self.config.window) : end]
+
+    def _schedule(self, new_id: int) -> list[int]:
+        """Keyframe ids for the ``iterations`` steps: the new keyframe first, then the rest of its local
+        window (:meth:`_window`) and ``global_keyframes`` random others, shuffled, cycled to length
+        ``iterations``."""
+        c = self.config
+        window = self._window(new_id)[:-1]
+        local = set(window) | {new_id}
+        older = [k for k in sorted(self.keyframes) if k not in local]
         extra = self._rng.sample(older, min(c.global_keyframes, len(older)))
         rest = window + extra
         self._rng.shuffle(rest)
