@@ -617,13 +617,13 @@ class GaussianMapper:
         if out.visible.numel() == 0:
             return
         loss = c.lambda_color * (out.color - kf.image()).abs().mean()
-        depth = kf.depth
-        valid = depth > 0
-        n_valid = int(valid.sum())
-        if lambda_depth > 0 and n_valid > 0:
-            # mean over valid pixels, as a masked sum (cheaper than gathering them, same gradient)
-            depth_err = (out.depth - depth).abs_().mul_(valid).sum() / n_valid
-            loss = loss + lambda_depth * depth_err
+        if lambda_depth > 0:   # the depth is read only for a step that weighs it (a revisit's does not)
+            depth = kf.depth
+            valid = depth > 0
+            n_valid = int(valid.sum())
+            if n_valid > 0:   # mean over valid pixels, as a masked sum (cheaper than gathering them, same gradient)
+                depth_err = (out.depth - depth).abs_().mul_(valid).sum() / n_valid
+                loss = loss + lambda_depth * depth_err
         if c.lambda_iso > 0:
             s = sub.log_scales.index_select(0, out.visible).exp()
             loss = loss + c.lambda_iso * (s - s.mean(dim=1, keepdim=True)).abs().mean()
