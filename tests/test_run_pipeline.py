@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -351,6 +352,32 @@ def test_vigs_run_interrupted_writes_what_it_computed_and_leaves_no_child(tmp_pa
     # multiprocessing's resource tracker ends when it reads EOF from the exited parent: give it a moment
     _, alive = psutil.wait_procs(children, timeout=15)
     assert children and not any(c.is_running() and c.status() != psutil.STATUS_ZOMBIE for c in alive)
+
+
+def test_vigs_run_interrupted_while_the_map_is_finished_writes_everything(tmp_path):
+    """Ctrl-C after the last frame, while the mapper drains its backlog or refines the map (``--refine`` far
+    longer than the test): the drain or the refinement gives way within seconds, and the run writes trajectory,
+    report (marked interrupted) and map, and exits 130 (it used to raise KeyboardInterrupt and write nothing)."""
+    from ros_bags import SAMPLE_BAG
+
+    from vigs_core.mapping.ply import read_ply_vertices
+
+    cmd = [sys.executable, "-c", "import signal, sys; from vigs_cli.main import main; "
+           "signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit(main())",
+           "run", str(SAMPLE_BAG), "--out", str(tmp_path), "--refine", "100000"]
+    proc, seen = run_until_frame(cmd, 441)
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, seen[-1000:] + err[-3000:]
+    assert time.monotonic() - t0 < 60
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["interrupted"] == "SIGINT" and report["frames"] == 441
+    assert len(read_tum(tmp_path / "trajectory.txt")) == report["frames_posed"] > 0
+    m = report["mapping"]
+    assert m.get("interrupted") or 0 < m["refined"]["iterations"] < 100000, m
+    assert len(read_ply_vertices(tmp_path / "map.ply")) == m["gaussians"] > 1000
 
 
 def test_inputs_without_imu_or_recognisable_layout_are_named(sequence, tmp_path, capsys):

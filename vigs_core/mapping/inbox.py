@@ -88,10 +88,11 @@ class MapperInbox:
             self._busy -= 1
             self._cond.notify_all()
 
-    def wait_empty(self) -> None:
-        """Block until nothing is pending or deferred and no taken event is being applied."""
+    def wait_empty(self, timeout: float | None = None) -> bool:
+        """Block until nothing is pending or deferred and no taken event is being applied, or ``timeout`` seconds
+        passed; whether it is empty."""
         with self._cond:
-            self._cond.wait_for(lambda: not self._ready() and self._busy == 0)
+            return self._cond.wait_for(lambda: not self._ready() and self._busy == 0, timeout)
 
     def full(self) -> bool:
         """The queue is at its capacity: the next keyframe will defer one (never with no capacity)."""

@@ -367,9 +367,10 @@ class GaussianMapper:
         self._worker = threading.Thread(target=self._work, name="gaussian-mapper", daemon=True)
         self._worker.start()
 
-    def wait_idle(self) -> None:
-        """Block until every queued event has been applied (by the worker or by :meth:`step`)."""
-        self._inbox.wait_empty()
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until every queued event has been applied (by the worker or by :meth:`step`), or ``timeout``
+        seconds passed; whether it has."""
+        return self._inbox.wait_empty(timeout)
 
     def stop(self) -> None:
         """Stop the worker thread after the event it is applying, a keyframe's insertion cut short after the

@@ -127,9 +127,10 @@ class MapperProcess:
                     {int(k): float(s) for k, s in (scales or {}).items()}))
 
     # ------------------------------------------------------------------ calls (answered in order)
-    def wait_idle(self) -> None:
-        """Block until the child's mapper has applied everything queued."""
-        self._call("wait_idle")
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until the child's mapper has applied everything queued, or ``timeout`` seconds passed; whether it
+        has."""
+        return self._call("wait_idle", timeout)
 
     def stop(self) -> None:
         """Stop the child's worker after the step in hand (queued events stay queued)."""

@@ -21,7 +21,9 @@ Per processed frame (:meth:`OnlineMapping.step`, tracking thread, only queue ope
 At the end (:meth:`finish`) the remaining keyframes are sent and the mapper drained; :meth:`evaluate` renders
 every ``eval_stride``-th frame that is not a keyframe at its final pose and compares it with the undistorted
 input image (PSNR, SSIM at the render resolution), then optionally runs ``final_refine_iterations`` steps of
-colour refinement and evaluates again.
+colour refinement and evaluates again. Both give way to a ``stop`` request (a signal after the run loop): the
+drain checks it every ``WAIT_POLL_S`` and hands over to the bounded shutdown drain, the refinement runs in
+chunks of ``REFINE_CHUNK`` steps and keeps those done.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -41,6 +43,8 @@ from vigs_core.mapping.process import MapperProcess
 from vigs_core.ranges import bounded
 
 F64 = torch.float64
+WAIT_POLL_S = 0.5    # how often the end-of-run drain checks for a stop request
+REFINE_CHUNK = 50    # refinement steps between two checks for a stop request
 
 
 @dataclass
@@ -151,21 +155,24 @@ class OnlineMapping:
                 kf = self.odometry.keyframes[k]
                 self._sent.record(kf, se3_inverse(kf.pose.to(F64)))
 
-    def finish(self, drain: bool = True, interrupted_drain_s: float = 10.0) -> None:
+    def finish(self, drain: bool = True, interrupted_drain_s: float = 10.0,
+               stop: Callable[[], bool] | None = None) -> bool:
         """Send pending pose updates and every keyframe not yet mapped, then wait for the mapper to drain
-        (``drain`` False, an interrupted run: stop it after the optimisation step it is taking and insert what is
-        queued without refinement, for at most ``interrupted_drain_s``: :meth:`GaussianMapper.drain`)."""
+        (``drain`` False, an interrupted run, or ``stop()`` true while waiting: stop it after the optimisation
+        step it is taking and insert what is queued without refinement, for at most ``interrupted_drain_s``:
+        :meth:`GaussianMapper.drain`). Returns whether the mapper drained with its refinement."""
         self._send_pose_updates()
         for k in sorted(self.odometry.keyframes):
             if k not in self._sent:
                 self._send_keyframe(k)
         t0 = time.perf_counter()
-        if drain:
-            self.mapper.wait_idle()
+        while drain and not self.mapper.wait_idle(WAIT_POLL_S):
+            drain = not (stop is not None and stop())
         self.mapper.stop()
         if not drain:
             self.mapper.drain(interrupted_drain_s)
         self.wait_seconds = time.perf_counter() - t0
+        return drain
 
     # ------------------------------------------------------------------ end of run
     def _sample_for_evaluation(self, image: np.ndarray) -> None:
@@ -179,9 +186,10 @@ class OnlineMapping:
             del self._eval_images[list(self._eval_images)[j]]
             self._eval_images[self._frame_index] = image
 
-    def evaluate(self, t_ns: np.ndarray, T_WC: np.ndarray) -> dict:
+    def evaluate(self, t_ns: np.ndarray, T_WC: np.ndarray, stop: Callable[[], bool] | None = None) -> dict:
         """Mapping numbers for report.json, with render quality at the final frame poses ``T_WC`` (N, 4, 4) of
-        the frames at times ``t_ns`` (N,) ns (call after :meth:`finish`)."""
+        the frames at times ``t_ns`` (N,) ns (call after :meth:`finish`); the refinement ends early once
+        ``stop()`` is true (``refined.iterations``: the steps taken; none taken, no ``refined``)."""
         pose_at = {int(t): T for t, T in zip(t_ns, T_WC)}
         views = []
         for idx, image in self._eval_images.items():
@@ -205,11 +213,13 @@ class OnlineMapping:
         t0 = time.perf_counter()
         out["online"] = _rounded(self.mapper.evaluate(views))
         out["eval_s"] = round(time.perf_counter() - t0, 3)
-        n = self.config.final_refine_iterations
-        if n > 0:
-            t0 = time.perf_counter()
-            self.mapper.refine(n)
-            out["refined"] = {**_rounded(self.mapper.evaluate(views)), "iterations": n,
+        t0, done = time.perf_counter(), 0
+        while done < self.config.final_refine_iterations and not (stop is not None and stop()):
+            step = min(REFINE_CHUNK, self.config.final_refine_iterations - done)
+            self.mapper.refine(step)
+            done += step
+        if done > 0:
+            out["refined"] = {**_rounded(self.mapper.evaluate(views)), "iterations": done,
                               "refine_s": round(time.perf_counter() - t0, 3)}
         return out
 

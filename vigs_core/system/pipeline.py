@@ -201,8 +201,9 @@ def _accuracy(gt: Trajectory, frame_t_ns: np.ndarray, t_ns: np.ndarray, T_WX: np
 
 
 class StopRequest:
-    """SIGINT / SIGTERM during the run loop: the loop stops at the next frame boundary (``requested`` names the
-    signal) and the run writes what it computed; a second signal interrupts at once. Installed only when called
+    """SIGINT / SIGTERM during the run, until its outputs are written: the loop stops at the next frame boundary
+    (``requested`` names the signal), the map's end-of-run drain and refinement give way, and the run writes what
+    it computed; a second signal interrupts at once. Installed only when called
     from the main thread (signal handlers can be set nowhere else)."""
 
     def __init__(self) -> None:
@@ -475,90 +476,99 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
     except Exception as err:   # noqa: BLE001 - written out below, then raised
         failure = err
     finally:
-        stop.restore()
         reader.close()
         checkpoints.wait()   # no checkpoint may replace the final outputs
-    if bar is not None:
-        bar.close()
-    if stop.requested or failure is not None:
-        why = stop.requested or f"{type(failure).__name__}: {failure}"
-        print(f"vigs run: stopped after {n} frames ({why}): writing what was computed", file=sys.stderr)
-    if loop is not None:
-        try:
-            loop.finish()
-        except RuntimeError as err:   # its worker failed: the outputs are still written, then the error raised
-            print(f"vigs run: {err}", file=sys.stderr)
-            failure = failure or err
-    loop_s = time.perf_counter() - t_loop
-    poses = pose_outputs(odo, seq.T_BS)   # scored below, then written
-    (t_ns, T_WB), (_, T_WC), (to, T_WB_odo) = poses["trajectory"], poses["trajectory_cam"], poses["odometry"]
-    timings = {"input_wait": t_wait, "input_reader_thread": reader.reader_seconds, **dict(odo.timings)}
-    report = {
-        "input": str(input_path), "sequence": seq.name,
-        "resolution": [cam.width, cam.height], "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
-        "frames": n, "frames_skipped": len(stream.skipped_ns), "frames_posed": int(len(t_ns)), "keyframes": len(odo.keyframes), "ba_calls": odo.ba_calls,
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-        "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
-        "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
-        "peak_rss_mb": round(peak_rss_mb(), 1), "allocator": allocator(),
-        "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
-        "bad_frames": bad_frames,
-    }
-    if loop is not None:
-        report["loop"] = loop.report()
-    cut_short = stop.requested is not None or failure is not None
-    if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
-        try:
-            mapping.finish(drain=not cut_short)
-            if cut_short:
-                summary = mapping.mapper.summary()
-                report["mapping"] = {"gaussians": summary.gaussians, "keyframes_mapped": summary.stats.keyframes,
-                                     "interrupted": True}
-            else:
-                report["mapping"] = mapping.evaluate(t_ns, T_WC)
-            if isinstance(mapping.mapper, MapperProcess):   # tracking waited for a mapping process that lagged
-                report["mapping"]["queue_wait_seconds"] = round(mapping.mapper.channel.waited_s, 3)
-                report["mapping"]["process_peak_rss_mb"] = round(mapping.mapper.peak_rss_mb(), 1)
-        except MappingProcessError as err:   # the trajectory and the report are still written, then it is raised
-            print(f"vigs run: {err}\nvigs run: no map is written", file=sys.stderr)
-            report["mapping"] = {"error": str(err).splitlines()[0]}
-            report["error"] = report["error"] or f"{type(err).__name__}: {report['mapping']['error']}"
-            failure = failure or err
-            mapping.close()
-            mapping = None
-    metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
-    frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
-    if seq.groundtruth is not None and len(t_ns):
-        if metric:
-            report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
-            report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
-        else:   # arbitrary scale: score camera poses (module docstring)
-            T_WC_odo = T_WB_odo @ seq.T_BS
-            report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WC, T_BX=seq.T_BS)
-            report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WC_odo, T_BX=seq.T_BS)
-    velocities = None
-    if isinstance(odo, VisualInertialOdometry):
-        # stage, scale history, biases; metric runs are also scored with SE(3) alignment (no scale correction)
-        report["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
-        tv, velocities = odo.frame_velocities()
-        if metric and seq.groundtruth is not None and len(t_ns):
-            report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
-    report["total_s"] = round(time.perf_counter() - t_start, 3)
-    if recorder is not None:
-        _finish_recording(recorder, odo, seq, poses, report, mapping)
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        write_pose_outputs(out, poses, frame_statuses(odo))
-        if velocities is not None:
-            np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
-                       header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
+    try:   # until the outputs are written a signal only asks to stop (StopRequest), so they are written
+        if bar is not None:
+            bar.close()
+        if stop.requested or failure is not None:
+            why = stop.requested or f"{type(failure).__name__}: {failure}"
+            print(f"vigs run: stopped after {n} frames ({why}): writing what was computed", file=sys.stderr)
+        if loop is not None:
+            try:
+                loop.finish()
+            except RuntimeError as err:   # its worker failed: the outputs are still written, then the error raised
+                print(f"vigs run: {err}", file=sys.stderr)
+                failure = failure or err
+        loop_s = time.perf_counter() - t_loop
+        poses = pose_outputs(odo, seq.T_BS)   # scored below, then written
+        (t_ns, T_WB), (_, T_WC), (to, T_WB_odo) = poses["trajectory"], poses["trajectory_cam"], poses["odometry"]
+        timings = {"input_wait": t_wait, "input_reader_thread": reader.reader_seconds, **dict(odo.timings)}
+        report = {
+            "input": str(input_path), "sequence": seq.name,
+            "resolution": [cam.width, cam.height], "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+            "frames": n, "frames_skipped": len(stream.skipped_ns), "frames_posed": int(len(t_ns)), "keyframes": len(odo.keyframes), "ba_calls": odo.ba_calls,
+            "timings_s": {k: round(v, 3) for k, v in timings.items()},
+            "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
+            "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
+            "peak_rss_mb": round(peak_rss_mb(), 1), "allocator": allocator(),
+            "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
+            "bad_frames": bad_frames,
+        }
+        if loop is not None:
+            report["loop"] = loop.report()
+        cut_short = stop.requested is not None or failure is not None
+        if mapping is not None:   # wait for the mapper's backlog, then render quality at the final poses
+            def stopping() -> bool:   # a signal after the run loop cuts the map's drain and refinement short
+                return stop.requested is not None
+
+            try:
+                if not mapping.finish(drain=not cut_short, stop=stopping) and not cut_short:
+                    cut_short = True
+                    print(f"vigs run: {stop.requested} while the mapper finished: its backlog is inserted "
+                          "unrefined", file=sys.stderr)
+                if cut_short:
+                    summary = mapping.mapper.summary()
+                    report["mapping"] = {"gaussians": summary.gaussians, "keyframes_mapped": summary.stats.keyframes,
+                                         "interrupted": True}
+                else:
+                    report["mapping"] = mapping.evaluate(t_ns, T_WC, stop=stopping)
+                if isinstance(mapping.mapper, MapperProcess):   # tracking waited for a mapping process that lagged
+                    report["mapping"]["queue_wait_seconds"] = round(mapping.mapper.channel.waited_s, 3)
+                    report["mapping"]["process_peak_rss_mb"] = round(mapping.mapper.peak_rss_mb(), 1)
+            except MappingProcessError as err:   # the trajectory and the report are still written, then it is raised
+                print(f"vigs run: {err}\nvigs run: no map is written", file=sys.stderr)
+                report["mapping"] = {"error": str(err).splitlines()[0]}
+                report["error"] = report["error"] or f"{type(err).__name__}: {report['mapping']['error']}"
+                failure = failure or err
+                mapping.close()
+                mapping = None
+        metric = isinstance(odo, VisualInertialOdometry) and odo.vio.metric
+        frame_t = np.array([f.t_ns for f in odo.frames], dtype=np.int64)
+        if seq.groundtruth is not None and len(t_ns):
+            if metric:
+                report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB)
+                report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WB_odo)
+            else:   # arbitrary scale: score camera poses (module docstring)
+                T_WC_odo = T_WB_odo @ seq.T_BS
+                report["accuracy"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WC, T_BX=seq.T_BS)
+                report["accuracy_odometry"] = _accuracy(seq.groundtruth, frame_t, to, T_WC_odo, T_BX=seq.T_BS)
+        velocities = None
+        if isinstance(odo, VisualInertialOdometry):
+            # stage, scale history, biases; metric runs are also scored with SE(3) alignment (no scale correction)
+            report["vio"] = {**odo.report(), "keyframe_states": odo.keyframe_states()}
+            tv, velocities = odo.frame_velocities()
+            if metric and seq.groundtruth is not None and len(t_ns):
+                report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
+        report["interrupted"] = stop.requested   # also by a signal while the map was finished
+        report["total_s"] = round(time.perf_counter() - t_start, 3)
+        if recorder is not None:
+            _finish_recording(recorder, odo, seq, poses, report, mapping)
+        if out_dir is not None:
+            out = Path(out_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            write_pose_outputs(out, poses, frame_statuses(odo))
+            if velocities is not None:
+                np.savetxt(out / "velocity.txt", np.column_stack((tv * 1e-9, velocities.numpy())), fmt="%.9f",
+                           header="timestamp[s] vx vy vz [m/s], body velocity in the world (nan before IMU init)")
+            if mapping is not None:
+                mapping.save(out / "map.ply")
+            _replace_atomically(out / "report.json", lambda path: path.write_text(json.dumps(report, indent=2)))
+            _write_html_report(out, seq, frame_t, metric)
         if mapping is not None:
-            mapping.save(out / "map.ply")
-        _replace_atomically(out / "report.json", lambda path: path.write_text(json.dumps(report, indent=2)))
-        _write_html_report(out, seq, frame_t, metric)
-    if mapping is not None:
-        mapping.close()
-    if failure is not None:
-        raise failure
-    return report
+            mapping.close()
+        if failure is not None:
+            raise failure
+        return report
+    finally:
+        stop.restore()
