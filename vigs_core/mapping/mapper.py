@@ -92,7 +92,10 @@ class MapperConfig:
             else the compiled CPU kernels), "torch" (the pure-PyTorch reference), "numba" or "gsplat". The numba
             backend also takes Adam's compiled step (:class:`~vigs_core.mapping.optimizer.RowAdam` ``compiled``).
         tile_size: tile edge of the reference rasterizer, pixels.
-        max_per_tile: Gaussians composited per tile at most (reference rasterizer).
+        max_per_tile: Gaussians composited per tile at most, the front-most (the torch and numba backends; gsplat
+            has no cap). A whole sequence's map puts hundreds of Gaussians on many tiles, and a cap that cuts the
+            far ones of a tile whose front ones are not yet opaque leaves it dark, in the renders and in the
+            gradients (96 cost 2.5-4 dB on whole sequences; docs/benchmarks.md, issue 23).
         seed: seed of the keyframe sampler.
         retain_heap: keep freed heap memory in the process (see :func:`vigs_core.heap.retain_freed_heap`; glibc
             only, process-wide) instead of returning it to the kernel after every step.
@@ -129,7 +132,7 @@ class MapperConfig:
     prune_max_angular: float = bounded(0.1, 0)
     backend: str = "auto"
     tile_size: int = bounded(8, 1)
-    max_per_tile: int = bounded(96, 1)
+    max_per_tile: int = bounded(2048, 1)
     seed: int = 0
     retain_heap: bool = True
     max_backlog: int = bounded(0, 0)

@@ -81,7 +81,9 @@ class RenderSettings:
     Args:
         tile_size: tile edge in pixels (8 measured fastest on CPU: smaller tiles waste fewer (pixel,
             Gaussian) evaluations but cost more binning and smaller matrix products).
-        max_per_tile: at most this many front-most Gaussians are composited per tile (``K``).
+        max_per_tile: at most this many front-most Gaussians are composited per tile (``K``); high, since a cut
+            darkens crowded tiles whose front Gaussians are not opaque (the reference's memory is bounded by
+            ``chunk_pairs``, the compiled binning's by the pairs).
         near: Gaussians closer than this camera depth (metres) are culled.
         eps2d: low-pass variance added to every 2D covariance, px^2 (3DGS uses 0.3).
         chunk_pairs: (pixel, Gaussian) pairs composited at once (bounds the working set: about 20 bytes
@@ -90,7 +92,7 @@ class RenderSettings:
     """
 
     tile_size: int = 8
-    max_per_tile: int = 96
+    max_per_tile: int = 2048
     near: float = 0.05
     eps2d: float = 0.3
     chunk_pairs: int = 1 << 20
@@ -386,13 +388,16 @@ def _tile_chunks(counts: list[int], pixels: int, budget: int) -> list[tuple[int,
 @dataclass
 class TileBins:
     """Result of binning: ``tiles`` (T,) ids of non-empty tiles (row-major over the tile grid), sorted by
-    decreasing ``counts`` (T,) (Gaussians kept per tile), ``index`` (T, K) Gaussian rows, front to back,
-    padded with ``N`` (the transparent dummy), and ``binned`` (N,) bool, the Gaussians in at least one tile."""
+    decreasing ``counts`` (T,) (Gaussians kept per tile), ``index`` the Gaussian rows of each tile, front to back,
+    and ``binned`` (N,) bool, the Gaussians in at least one tile. ``index`` is (T, K) padded with ``N`` (the
+    transparent dummy) when ``starts`` is None (the reference), else flat: tile ``i``'s rows are ``index[starts[i]
+    : starts[i] + counts[i]]`` (the compiled binning, whose size then follows the pairs, not ``T K``)."""
 
     tiles: torch.Tensor
     index: torch.Tensor
     counts: torch.Tensor
     binned: torch.Tensor
+    starts: torch.Tensor | None = None
 
 
 def ellipse_meets_tile(ellipse: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:

@@ -8,7 +8,8 @@ Gaussian, where the tensor version paid the per-call overhead of about a hundred
 Binning (:func:`bin_gaussians`) gives the reference's :class:`~vigs_core.mapping.rasterizer.TileBins` without its
 sort of (tile, depth) pairs: the Gaussians are visited in depth order, so each tile's list fills front to back; a
 candidate tile of a Gaussian's bounding box is kept where its 1/255 ellipse meets the rectangle of the tile's pixel
-centres (the exact test of :func:`~vigs_core.mapping.rasterizer.ellipse_meets_tile`).
+centres (the exact test of :func:`~vigs_core.mapping.rasterizer.ellipse_meets_tile`). The lists are flat, one after
+the other (``TileBins.starts``), not a (tiles, busiest tile) table: a whole sequence's map has tiles with thousands.
 
 Same model as the torch reference (:class:`~vigs_core.mapping.rasterizer._RasterizeTiles`): ``alpha = o
 exp(power)``, ``power = -(1/2) d^T Q d``, cut below 1/255, ``w_k = alpha_k T_k``, features ``sum_k w_k f_k``
@@ -62,7 +63,7 @@ def _exp_neg(x):
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used):
+def _forward(table, index, starts, counts, tiles, n_tx, ts, width, height, out, t_end, n_used):
     P = ts * ts
     gx, gy = np.empty(P, _F), np.empty(P, _F)  # tile-local pixel centres
     T, used = np.empty(P, _F), np.empty(P, _F)
@@ -75,7 +76,7 @@ def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n
             T[p] = _1 if ox + p % ts < width and oy + p // ts < height else _0
             used[p] = acc0[p] = acc1[p] = acc2[p] = acc3[p] = _0
         for k in range(counts[t]):
-            row = index[t, k]
+            row = index[starts[t] + k]
             u, v = table[row, 0] - _F(ox), table[row, 1] - _F(oy)
             a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
             f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
@@ -105,7 +106,7 @@ def _forward(table, index, counts, tiles, n_tx, ts, width, height, out, t_end, n
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_used, g_feat, g_alpha, d_table):
+def _backward(table, index, starts, counts, tiles, n_tx, ts, width, height, t_end, n_used, g_feat, g_alpha, d_table):
     P = ts * ts
     gx, gy = np.empty(P, _F), np.empty(P, _F)
     T, S, used, h = np.empty(P, _F), np.empty(P, _F), np.empty(P, _F), np.empty(P, _F)  # T_{k+1}, sum_{j>k} w g.f
@@ -128,7 +129,7 @@ def _backward(table, index, counts, tiles, n_tx, ts, width, height, t_end, n_use
             g3[p] = g_feat[py, px, 3] if inside else _0
             last = max(last, int(used[p]))
         for k in range(last - 1, -1, -1):
-            row = index[t, k]
+            row = index[starts[t] + k]
             u, v = table[row, 0] - _F(ox), table[row, 1] - _F(oy)
             a, b, c, o = table[row, 2], table[row, 3], table[row, 4], table[row, 5]
             f0, f1, f2, f3 = table[row, 6], table[row, 7], table[row, 8], table[row, 9]
@@ -184,20 +185,28 @@ def _meets(mx, my, a, b, c, r, x0, y0, x1, y1):
 
 @njit(cache=True, nogil=True)
 def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_per_tile):
-    """Per tile the rows of the Gaussians that meet it, front to back (``order``), the first ``max_per_tile``:
-    ``(counts (n_tx n_ty,), index (n_tx n_ty, max_per_tile) padded with N, binned (N,))``."""
+    """Per tile the rows of the Gaussians that meet it, front to back (``order``), the first ``max_per_tile``, in
+    one flat list (tile by tile): ``(counts (n_tx n_ty,), starts (n_tx n_ty,), index (sum of counts,), binned
+    (N,))``, tile ``t``'s rows ``index[starts[t] : starts[t] + counts[t]]``. The pairs are collected in depth
+    order, then placed by a counting sort on the tile, which keeps that order within each tile."""
     n = mean2d.shape[0]
+    box = np.empty((n, 4), np.int64)
+    bound = 0
+    for g in range(n):
+        mx, my = mean2d[g, 0], mean2d[g, 1]
+        box[g, 0] = min(max(int(np.floor((mx - half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
+        box[g, 1] = min(max(int(np.floor((mx + half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
+        box[g, 2] = min(max(int(np.floor((my - half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
+        box[g, 3] = min(max(int(np.floor((my + half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
+        bound += (box[g, 1] - box[g, 0] + 1) * (box[g, 3] - box[g, 2] + 1)
+    pair_tile, pair_row = np.empty(bound, np.int64), np.empty(bound, np.int64)
     counts = np.zeros(n_tx * n_ty, np.int64)
-    index = np.full((n_tx * n_ty, max_per_tile), n, np.int64)
     binned = np.zeros(n, np.bool_)
+    m = 0
     for g in order:
         mx, my = mean2d[g, 0], mean2d[g, 1]
-        tx0 = min(max(int(np.floor((mx - half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
-        tx1 = min(max(int(np.floor((mx + half[g, 0] + 0.5) / ts)), 0), n_tx - 1)
-        ty0 = min(max(int(np.floor((my - half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
-        ty1 = min(max(int(np.floor((my + half[g, 1] + 0.5) / ts)), 0), n_ty - 1)
-        for ty in range(ty0, ty1 + 1):
-            for tx in range(tx0, tx1 + 1):
+        for ty in range(box[g, 2], box[g, 3] + 1):
+            for tx in range(box[g, 0], box[g, 1] + 1):
                 x0, y0 = tx * ts, ty * ts
                 if not _meets(mx, my, conic[g, 0], conic[g, 1], conic[g, 2], reach[g], x0, y0,
                               min(x0 + ts - 1, width - 1), min(y0 + ts - 1, height - 1)):
@@ -205,23 +214,33 @@ def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_p
                 tile = ty * n_tx + tx
                 binned[g] = True
                 if counts[tile] < max_per_tile:
-                    index[tile, counts[tile]] = g
+                    pair_tile[m], pair_row[m] = tile, g
                     counts[tile] += 1
-    return counts, index, binned
+                    m += 1
+    starts = np.zeros(n_tx * n_ty, np.int64)
+    for t in range(1, n_tx * n_ty):
+        starts[t] = starts[t - 1] + counts[t - 1]
+    fill = starts.copy()
+    index = np.empty(m, np.int64)
+    for i in range(m):
+        index[fill[pair_tile[i]]] = pair_row[i]
+        fill[pair_tile[i]] += 1
+    return counts, starts, index, binned
 
 
 def bin_gaussians(mean2d, half_extent, depth, conic, reach, n_tx: int, n_ty: int, ts: int, width: int, height: int,
                   max_per_tile: int) -> TileBins:
     """:func:`~vigs_core.mapping.rasterizer.bin_gaussians` with the ellipse test, compiled (CPU tensors, no
-    gradient): the same tiles, ``K = min(max_per_tile, busiest tile)`` slots each, ordered by ``depth``."""
+    gradient): the same tiles, each's front-most ``max_per_tile`` Gaussians ordered by ``depth``, in the flat
+    layout (``TileBins.starts``): its size follows the tile-Gaussian pairs, not the busiest tile times the tiles,
+    so a high ``max_per_tile`` costs only the Gaussians composited."""
     arrays = [t.detach().contiguous().numpy() for t in (mean2d, half_extent, conic, reach)]
     order = np.argsort(depth.detach().numpy(), kind="stable")
-    counts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile)
-    k = max(int(counts.max(initial=0)), 1)
+    counts, starts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile)
     tiles = np.flatnonzero(counts)
     tiles = tiles[np.argsort(-counts[tiles], kind="stable")]
-    return TileBins(torch.from_numpy(tiles), torch.from_numpy(np.ascontiguousarray(index[tiles, :k])),
-                    torch.from_numpy(counts[tiles]), torch.from_numpy(binned))
+    return TileBins(torch.from_numpy(tiles), torch.from_numpy(index), torch.from_numpy(counts[tiles]),
+                    torch.from_numpy(binned), torch.from_numpy(starts[tiles]))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -390,7 +409,7 @@ class ProjectGaussians(torch.autograd.Function):
 class CompositeTiles(torch.autograd.Function):
     """``(features (H, W, F), alpha (H, W))`` of the table ``(N + 1, 6 + F)`` rows ``[u, v, a, b, c, o, f]``
     composited over the tiles of a :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``, ``index``,
-    ``counts``); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
+    ``counts``, flat or per tile); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
     (RGB and depth, as the rasterizer composites); computed in float32, returned in the table's dtype."""
 
     @staticmethod
@@ -398,13 +417,15 @@ class CompositeTiles(torch.autograd.Function):
         if table.shape[1] != 10:
             raise ValueError(f"compiled compositing takes 4 features per Gaussian, got {table.shape[1] - 6}")
         tab = table.detach().to(torch.float32).contiguous().numpy()
-        index, counts, tiles = (v.contiguous().numpy() for v in (bins.index, bins.counts, bins.tiles))
+        index, counts, tiles = (v.contiguous().numpy() for v in (bins.index.reshape(-1), bins.counts, bins.tiles))
+        starts = (bins.starts.contiguous().numpy() if bins.starts is not None
+                  else np.arange(len(tiles), dtype=np.int64) * bins.index.shape[1])
         out = np.zeros((height, width, 4), np.float32)
         t_end = np.ones((height, width), np.float32)
         n_used = np.zeros((height, width), np.int64)
-        _forward(tab, index, counts, tiles, n_tx, ts, width, height, out, t_end, n_used)
+        _forward(tab, index, starts, counts, tiles, n_tx, ts, width, height, out, t_end, n_used)
         if ctx.needs_input_grad[0]:
-            ctx.kernel_args = (tab, index, counts, tiles, n_tx, ts, width, height, t_end, n_used)
+            ctx.kernel_args = (tab, index, starts, counts, tiles, n_tx, ts, width, height, t_end, n_used)
         ctx.dtype, ctx.size = table.dtype, (height, width)
         return torch.from_numpy(out).to(table.dtype), torch.from_numpy(1.0 - t_end).to(table.dtype)
 
