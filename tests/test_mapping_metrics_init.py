@@ -31,6 +31,10 @@ def test_ssim_closed_forms():
     rgb = torch.rand(24, 30, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     ref = (rgb + 0.1 * torch.randn(24, 30, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64))
     assert math.isclose(ssim(rgb, ref), _ssim_float64(rgb, ref), rel_tol=1e-5)
+    # grey images as three equal channels (a grey map): the same value as the definition over all three
+    grey, grey_ref = (x[..., :1].expand(-1, -1, 3) for x in (rgb, ref))
+    assert math.isclose(ssim(grey, grey_ref), _ssim_float64(grey, grey_ref), rel_tol=1e-5)
+    assert math.isclose(ssim(grey, grey_ref), ssim(rgb[..., 0], ref[..., 0]), rel_tol=1e-12)
     with pytest.raises(ValueError, match="same shape"):
         ssim(img, img[:-1])
 

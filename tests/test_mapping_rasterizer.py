@@ -160,6 +160,8 @@ def test_frustum_and_tile_culling_do_not_change_the_image(monkeypatch):
     settings = RenderSettings(tile_size=8, max_per_tile=1000)
     rows = frustum_rows(means, scales, T_CW, cam, settings)
     assert 0 < rows.numel() < 0.6 * means.shape[0]
+    for d in (torch.float64, torch.float32):   # the compiled pass keeps the same rows
+        assert torch.equal(frustum_rows(means.to(d), scales.to(d), T_CW.to(d), cam, settings, compiled=True), rows)
     raster = TorchRasterizer(settings)
     full = raster(means, quats, scales, opac, colors, T_CW, cam)
     part = raster(*(t[rows] for t in (means, quats, scales, opac, colors)), T_CW, cam)

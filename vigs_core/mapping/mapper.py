@@ -517,7 +517,8 @@ class GaussianMapper:
         """``T_CW`` of the view and the rows of ``gmap`` in its frustum (:func:`frustum_rows`): only these
         are activated, rendered and differentiated, so a step costs nothing for the rest of the map."""
         T_CW = se3_inverse(T_WC.to(self.device)).to(gmap.dtype)
-        return T_CW, frustum_rows(gmap.means, gmap.scales(), T_CW, camera, self.rasterizer.settings)
+        return T_CW, frustum_rows(gmap.means, gmap.scales(), T_CW, camera, self.rasterizer.settings,
+                                  getattr(self.rasterizer, "compiled", False))
 
     def _rasterize(self, gmap: GaussianMap, T_CW: torch.Tensor, camera: RenderCamera) -> RenderOutput:
         return self.rasterizer(

@@ -181,7 +181,8 @@ def project_gaussians(
 
 @torch.no_grad()
 def frustum_rows(
-    means: torch.Tensor, scales: torch.Tensor, T_CW: torch.Tensor, camera: RenderCamera, settings: RenderSettings
+    means: torch.Tensor, scales: torch.Tensor, T_CW: torch.Tensor, camera: RenderCamera, settings: RenderSettings,
+    compiled: bool = False,
 ) -> torch.Tensor:
     """Rows (M,) int64 of the Gaussians (``means`` (N, 3), ``scales`` (N, 3) metres) that can reach a pixel:
     in front of the camera (depth above ``settings.near``) and with the projected centre ``m`` within
@@ -190,7 +191,12 @@ def frustum_rows(
     ``||J R S||_2 + sqrt(eps) <= s_max ||J||_F + sqrt(eps)`` with ``||J||_F = sqrt(fx^2 (1 + t_x^2) +
     fy^2 (1 + t_y^2)) / z`` (``t`` the clamped rays of :func:`project_gaussians`), so
     ``r = sqrt(2 ln 255) (s_max ||J||_F + sqrt(eps))``: every row culled here would fail the rasterizer's
-    own image test, and rendering only the returned rows gives the same image. No gradient."""
+    own image test, and rendering only the returned rows gives the same image. No gradient. ``compiled`` (CPU
+    tensors): the same test in one compiled pass (:func:`vigs_core.mapping.rasterizer_numba.frustum_rows`)."""
+    if compiled and means.device.type == "cpu":
+        from vigs_core.mapping import rasterizer_numba
+
+        return rasterizer_numba.frustum_rows(means, scales, T_CW, camera, settings.near, settings.eps2d)
     dtype = means.dtype
     p_cam = means.detach() @ T_CW[:3, :3].to(dtype).T + T_CW[:3, 3].to(dtype)
     z = p_cam[:, 2].clamp_min(1e-9)
@@ -530,7 +536,7 @@ class TorchRasterizer:
         n_ty = math.ceil(camera.height / ts)
         P = ts * ts
 
-        front = frustum_rows(means, scales, T_CW, camera, s)
+        front = frustum_rows(means, scales, T_CW, camera, s, compiled)
         rows = (means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front))
         if compiled:  # the projection fused with the conic, in one compiled loop each way
             mean2d, conic, z, cov2d = rasterizer_numba.ProjectGaussians.apply(*rows, T_CW, camera, s.eps2d)
