@@ -306,9 +306,11 @@ def run_until_frame(cmd: list[str], frames: int, own_group: bool = False) -> tup
                             process_group=0 if own_group else None)
     seen = ""
     while not any(int(n) >= frames for n in re.findall(r"\b(\d+)/441", seen)):
-        chunk = proc.stderr.read(64)
+        # what the pipe holds, however little: a read of a fixed size waited for more once the bar's last line
+        # was in, and with a long refinement after it that could be an hour
+        chunk = os.read(proc.stderr.fileno(), 4096)
         assert chunk, f"vigs run ended before {frames} frames: {seen[-2000:]}"
-        seen += chunk
+        seen += chunk.decode(errors="replace")
     return proc, seen
 
 
