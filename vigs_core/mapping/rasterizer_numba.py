@@ -218,8 +218,7 @@ def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_p
                     counts[tile] += 1
                     m += 1
     starts = np.zeros(n_tx * n_ty, np.int64)
-    for t in range(1, n_tx * n_ty):
-        starts[t] = starts[t - 1] + counts[t - 1]
+    starts[1:] = np.cumsum(counts)[:-1]
     fill = starts.copy()
     index = np.empty(m, np.int64)
     for i in range(m):
@@ -262,8 +261,6 @@ def _in_frustum(means, scales, R, t, intr, lim, near, reach, sqrt_eps, width, he
 def frustum_rows(means, scales, T_CW, camera, near: float, eps2d: float) -> torch.Tensor:
     """:func:`~vigs_core.mapping.rasterizer.frustum_rows` compiled (CPU tensors): one pass in float64 instead of a
     dozen whole-map tensor operations, which cost a mapping step about 2-3 ms on a whole sequence's map."""
-    from vigs_core.mapping.rasterizer import ray_limits
-
     T = T_CW.detach().to(torch.float64).numpy()
     keep = np.empty(means.shape[0], np.bool_)
     _in_frustum(means.detach().contiguous().numpy(), scales.detach().contiguous().numpy(), T[:3, :3].copy(),
@@ -439,7 +436,7 @@ class ProjectGaussians(torch.autograd.Function):
 class CompositeTiles(torch.autograd.Function):
     """``(features (H, W, F), alpha (H, W))`` of the table ``(N + 1, 6 + F)`` rows ``[u, v, a, b, c, o, f]``
     composited over the tiles of a :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``, ``index``,
-    ``counts``, flat or per tile); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
+    ``counts``, ``starts``: :func:`bin_gaussians`'s flat lists); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU tensors, ``F = 4``
     (RGB and depth, as the rasterizer composites); computed in float32, returned in the table's dtype."""
 
     @staticmethod
@@ -447,9 +444,8 @@ class CompositeTiles(torch.autograd.Function):
         if table.shape[1] != 10:
             raise ValueError(f"compiled compositing takes 4 features per Gaussian, got {table.shape[1] - 6}")
         tab = table.detach().to(torch.float32).contiguous().numpy()
-        index, counts, tiles = (v.contiguous().numpy() for v in (bins.index.reshape(-1), bins.counts, bins.tiles))
-        starts = (bins.starts.contiguous().numpy() if bins.starts is not None
-                  else np.arange(len(tiles), dtype=np.int64) * bins.index.shape[1])
+        index, starts, counts, tiles = (v.contiguous().numpy() for v in (bins.index, bins.starts, bins.counts,
+                                                                         bins.tiles))
         out = np.zeros((height, width, 4), np.float32)
         t_end = np.ones((height, width), np.float32)
         n_used = np.zeros((height, width), np.int64)

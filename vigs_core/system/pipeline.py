@@ -502,7 +502,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             "processing_s": round(loop_s, 3), "frames_per_s": round(n / loop_s, 2) if loop_s > 0 else None,
             "frames_per_s_excluding_io": round(n / max(loop_s - t_wait, 1e-9), 2),
             "peak_rss_mb": round(peak_rss_mb(), 1), "allocator": allocator(),
-            "interrupted": stop.requested, "error": None if failure is None else f"{type(failure).__name__}: {failure}",
+            "error": None if failure is None else f"{type(failure).__name__}: {failure}",
             "bad_frames": bad_frames,
         }
         if loop is not None:
@@ -550,7 +550,7 @@ def run_pipeline(input_path: str | Path, config: PipelineConfig | None = None, o
             tv, velocities = odo.frame_velocities()
             if metric and seq.groundtruth is not None and len(t_ns):
                 report["accuracy_se3"] = _accuracy(seq.groundtruth, frame_t, t_ns, T_WB, align="se3")
-        report["interrupted"] = stop.requested   # also by a signal while the map was finished
+        report["interrupted"] = stop.requested   # set here: also by a signal while the map was finished
         report["total_s"] = round(time.perf_counter() - t_start, 3)
         if recorder is not None:
             _finish_recording(recorder, odo, seq, poses, report, mapping)
