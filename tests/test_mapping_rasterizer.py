@@ -162,11 +162,16 @@ def test_frustum_and_tile_culling_do_not_change_the_image(monkeypatch):
     assert 0 < rows.numel() < 0.6 * means.shape[0]
     for d in (torch.float64, torch.float32):   # the compiled pass keeps the same rows
         assert torch.equal(frustum_rows(means.to(d), scales.to(d), T_CW.to(d), cam, settings, compiled=True), rows)
+    scene = (means, quats, scales, opac, colors)
+    for compiled in (False, True):   # the culled rows alone (no gather): the same image, the same gradients
+        full, full_grads = _render_and_grads(TorchRasterizer(settings, compiled=compiled), scene, T_CW, cam)
+        part, part_grads = _render_and_grads(TorchRasterizer(settings, compiled=compiled),
+                                             tuple(t[rows] for t in scene), T_CW, cam)
+        assert torch.equal(full.alpha, part.alpha) and torch.equal(full.color, part.color)
+        assert rows[part.visible].tolist() == full.visible.tolist()
+        for g_full, g_part in zip(full_grads, part_grads):
+            assert torch.equal(g_full[rows], g_part) and not bool(g_full.index_fill(0, rows, 0.0).any())
     raster = TorchRasterizer(settings)
-    full = raster(means, quats, scales, opac, colors, T_CW, cam)
-    part = raster(*(t[rows] for t in (means, quats, scales, opac, colors)), T_CW, cam)
-    assert torch.equal(full.alpha, part.alpha) and torch.equal(full.color, part.color)
-    assert rows[part.visible].tolist() == full.visible.tolist()
     # the same image from bounding-box binning alone: the exact tile test only drops pairs with alpha = 0
     pairs = {}
     exact_binning = rasterizer_module.bin_gaussians
@@ -266,6 +271,16 @@ def test_compiled_binning_matches_the_reference():
             assert torch.equal(got.index[start : start + count], ref.index[i, :count])
     assert 0 < int(ref.binned.sum()) < ref.binned.numel()
     assert int(ref.counts.max()) > 5, "the first pass must cut overfull tiles"
+
+
+def test_depth_order_is_a_stable_argsort():
+    from vigs_core.mapping.rasterizer_numba import depth_order
+
+    g = torch.Generator().manual_seed(5)
+    depth = torch.randn(3000, generator=g).mul_(4.0).round_().div_(8.0)   # many ties, negatives and zeros
+    depth = torch.cat((depth, torch.tensor([float("inf"), float("-inf"), 1e-30, -1e-30])))
+    values = depth.numpy().astype("float32")
+    assert torch.equal(torch.from_numpy(depth_order(values)), torch.sort(torch.from_numpy(values), stable=True)[1])
 
 
 def test_compiled_projection_matches_the_reference_and_finite_differences():

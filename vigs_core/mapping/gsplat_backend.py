@@ -49,7 +49,7 @@ class GsplatRasterizer:
         )
         renders, alphas, meta = rasterization(
             means,
-            quats,
+            quats / quats.norm(dim=-1, keepdim=True),   # the Rasterizer protocol: quats of any length
             scales,
             opacities,
             colors,

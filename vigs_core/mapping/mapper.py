@@ -522,7 +522,7 @@ class GaussianMapper:
 
     def _rasterize(self, gmap: GaussianMap, T_CW: torch.Tensor, camera: RenderCamera) -> RenderOutput:
         return self.rasterizer(
-            gmap.means, gmap.unit_quats(), gmap.scales(), gmap.opacities(), gmap.colors, T_CW, camera
+            gmap.means, gmap.quats, gmap.scales(), gmap.opacities(), gmap.colors, T_CW, camera
         )
 
     def _render(self, gmap: GaussianMap, T_WC: torch.Tensor, camera: RenderCamera) -> RenderOutput:

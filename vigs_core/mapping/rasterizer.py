@@ -112,7 +112,8 @@ class RenderOutput:
 class Rasterizer(Protocol):
     """A rasterizer backend: activated Gaussian parameters in, one rendered view out.
 
-    Args of ``__call__``: ``means`` (N, 3) world, ``quats`` (N, 4) ``(w, x, y, z)``, ``scales`` (N, 3) metres,
+    Args of ``__call__``: ``means`` (N, 3) world, ``quats`` (N, 4) ``(w, x, y, z)`` (normalised by the backend:
+    any non-zero length), ``scales`` (N, 3) metres,
     ``opacities`` (N,) in [0, 1], ``colors`` (N, 3), ``T_CW`` (4, 4) camera-from-world, ``camera``
     :class:`RenderCamera`. Differentiable in the Gaussian parameters.
     """
@@ -537,14 +538,15 @@ class TorchRasterizer:
         P = ts * ts
 
         front = frustum_rows(means, scales, T_CW, camera, s, compiled)
-        rows = (means.index_select(0, front), quats.index_select(0, front), scales.index_select(0, front))
+        every = front.shape[0] == means.shape[0]  # culled already (the mapper's views): no gather to differentiate
+        rows = (means, quats, scales) if every else tuple(x.index_select(0, front) for x in (means, quats, scales))
         if compiled:  # the projection fused with the conic, in one compiled loop each way
             mean2d, conic, z, cov2d = rasterizer_numba.ProjectGaussians.apply(*rows, T_CW, camera, s.eps2d)
         else:
             mean2d, cov2d, z = project_gaussians(*rows, T_CW, camera, s.eps2d)
             det = (cov2d[:, 0] * cov2d[:, 2] - cov2d[:, 1] ** 2).clamp_min(1e-12)
             conic = torch.stack((cov2d[:, 2], -cov2d[:, 1], cov2d[:, 0]), -1) / det[:, None]
-        opac = opacities.index_select(0, front).clamp(max=ALPHA_MAX)
+        opac = (opacities if every else opacities.index_select(0, front)).clamp(max=ALPHA_MAX)
         with torch.no_grad():
             reach = 2.0 * torch.log((255.0 * opac.detach()).clamp_min(1.0))  # d^2 where alpha hits 1/255
             half = torch.sqrt(reach[:, None] * cov2d[:, [0, 2]].detach())
@@ -559,25 +561,27 @@ class TorchRasterizer:
         with torch.no_grad():
             if compiled:
                 bins = rasterizer_numba.bin_gaussians(
-                    mean2d[sel], half[sel], z[sel], conic[sel], reach[sel], n_tx, n_ty, ts, camera.width,
-                    camera.height, s.max_per_tile,
+                    *(x.detach().index_select(0, sel) for x in (mean2d, half, z, conic, reach)), n_tx, n_ty, ts,
+                    camera.width, camera.height, s.max_per_tile,
                 )  # fmt: skip
             else:
                 bins = bin_gaussians(
                     mean2d.detach()[sel], half[sel], z.detach()[sel], camera, s, conic.detach()[sel], reach[sel]
                 )
-        # one (N + 1, 10) table [mean2d, conic, opacity, colour, z]; the compositing gathers its tile slots
-        table = torch.cat((mean2d, conic, opac[:, None], colors.index_select(0, front), z[:, None]), -1)
-        table = _append_zero_row(table.index_select(0, sel))
-
-        if compiled:
-            feats, alpha = rasterizer_numba.CompositeTiles.apply(table, bins, n_tx, ts, camera.width, camera.height)
-        else:
-            origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
-            chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
-            layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
-            feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
-        return RenderOutput(feats[..., :-1], feats[..., -1], alpha, front[sel[bins.binned]])
+        # one (N, 10) table [mean2d, conic, opacity, colour, z]; the compositing gathers its tile slots
+        colors = colors if every else colors.index_select(0, front)
+        table = torch.cat((mean2d, conic, opac[:, None], colors, z[:, None]), -1).index_select(0, sel)
+        visible = front.index_select(0, sel[bins.binned])
+        if compiled:   # flat tile lists: no padding slot
+            color, depth, alpha = rasterizer_numba.CompositeTiles.apply(table, bins, n_tx, ts, camera.width,
+                                                                        camera.height)
+            return RenderOutput(color, depth, alpha, visible)
+        table = _append_zero_row(table)   # the slot that pads the tile table's rows
+        origin = torch.stack(((bins.tiles % n_tx) * ts, (bins.tiles // n_tx) * ts), -1).to(dtype)
+        chunks = _tile_chunks(bins.counts.tolist(), P, s.chunk_pairs)
+        layout = _TileLayout(bins.tiles, bins.index, n_tx, n_ty, ts, camera.width, camera.height, chunks)
+        feats, alpha = _RasterizeTiles.apply(table, origin, _pixel_monomials(ts, dtype, device), layout)
+        return RenderOutput(feats[..., :-1], feats[..., -1], alpha, visible)
 
 
 def make_rasterizer(backend: str = "auto", settings: RenderSettings | None = None) -> Rasterizer:
