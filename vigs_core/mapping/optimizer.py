@@ -8,6 +8,7 @@ are left untouched, as in sparse Adam.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -84,12 +85,15 @@ class RowAdam:
         if self._compiled(params, grads):
             from vigs_core.mapping.adam_numba import adam_rows
 
-            rows, t = touched.numpy(), self.t.numpy()
-            for k, g in grads.items():
-                n = params[k].shape[0]
-                adam_rows(params[k].numpy().reshape(n, -1), self.m[k].numpy().reshape(n, -1),
-                          self.v[k].numpy().reshape(n, -1), t, rows, g.contiguous().numpy().reshape(len(rows), -1),
-                          self.lrs[k], b1, b2, self.eps)
+            rows = touched.numpy()
+
+            def table(tensors: dict[str, torch.Tensor], n: int) -> tuple:
+                return tuple(tensors[k].numpy().reshape(n, -1) for k in grads)
+
+            n = self.t.shape[0]
+            adam_rows(table(params, n), table(self.m, n), table(self.v, n),
+                      table({k: g.contiguous() for k, g in grads.items()}, len(rows)),
+                      np.array([self.lrs[k] for k in grads]), self.t.numpy(), rows, b1, b2, self.eps)
             return
         t = self.t[touched].to(next(iter(params.values())).dtype)
         c1 = 1.0 - b1**t
