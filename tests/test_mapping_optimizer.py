@@ -35,3 +35,19 @@ def test_compiled_step_equals_the_tensor_step():
         assert torch.allclose(got[k][51:], torch.full_like(got[k][51:], 0.5 - LRS[k]))
         assert torch.equal(got[k][50], torch.full_like(got[k][50], 0.5))  # not in the step: untouched
     assert torch.equal(adam.t, ref_adam.t) and adam.t[50:].tolist() == [0, 1, 1]
+
+
+def test_compiled_step_takes_mixed_dtypes_and_no_gradients():
+    """The kernel takes one tuple of one dtype: other parameter sets take the tensor step, with the same result."""
+    params = {"means": torch.randn(6, 3, dtype=torch.float64), "opacity_logits": torch.randn(6)}
+    results = []
+    for compiled in (False, True):
+        p = {k: v.clone() for k, v in params.items()}
+        adam = RowAdam(LRS, compiled=compiled)
+        adam.add_rows(6, p)
+        adam.step(p, torch.tensor([1, 4]), {k: torch.ones((2,) + v.shape[1:], dtype=v.dtype) for k, v in p.items()})
+        adam.step(p, torch.tensor([2]), {})   # no gradients: only the step count moves
+        results.append((p, adam.t.tolist()))
+    for k in params:
+        assert torch.equal(results[0][0][k], results[1][0][k])
+    assert results[0][1] == results[1][1] == [0, 1, 1, 0, 1, 0]

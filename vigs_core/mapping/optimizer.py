@@ -109,8 +109,9 @@ class RowAdam:
             p[touched] -= self.lrs[k] * update
 
     def _compiled(self, params: dict[str, torch.Tensor], grads: dict[str, torch.Tensor]) -> bool:
-        """Whether :meth:`step` takes the compiled path (:mod:`vigs_core.mapping.adam_numba`): ``compiled`` set and
-        every tensor a contiguous CPU tensor without gradient (numpy views of them are updated in place)."""
+        """Whether :meth:`step` takes the compiled path (:mod:`vigs_core.mapping.adam_numba`): ``compiled`` set, some
+        gradient given, and every tensor a contiguous CPU tensor without gradient (numpy views of them are updated in
+        place) of one dtype (the kernel takes them as one tuple)."""
         tensors = [params[k] for k in grads] + [self.m[k] for k in grads] + [self.v[k] for k in grads]
-        return self.compiled and all(x.device.type == "cpu" and x.is_contiguous() and not x.requires_grad
-                                     for x in tensors)
+        return self.compiled and bool(grads) and len({x.dtype for x in tensors}) == 1 and all(
+            x.device.type == "cpu" and x.is_contiguous() and not x.requires_grad for x in tensors)
