@@ -87,12 +87,12 @@ class RowAdam:
 
             rows = touched.numpy()
 
-            def table(tensors: dict[str, torch.Tensor], n: int) -> tuple:
+            def arrays(tensors: dict[str, torch.Tensor], n: int) -> tuple:   # (n, C) views, in the order of grads
                 return tuple(tensors[k].numpy().reshape(n, -1) for k in grads)
 
             n = self.t.shape[0]
-            adam_rows(table(params, n), table(self.m, n), table(self.v, n),
-                      table({k: g.contiguous() for k, g in grads.items()}, len(rows)),
+            adam_rows(arrays(params, n), arrays(self.m, n), arrays(self.v, n),
+                      arrays({k: g.contiguous() for k, g in grads.items()}, len(rows)),
                       np.array([self.lrs[k] for k in grads]), self.t.numpy(), rows, b1, b2, self.eps)
             return
         t = self.t[touched].to(next(iter(params.values())).dtype)
