@@ -448,10 +448,11 @@ class ProjectGaussians(torch.autograd.Function):
 
 class CompositeTiles(torch.autograd.Function):
     """``(color (H, W, 3), depth (H, W), alpha (H, W))`` of the table ``(N, 10)`` rows ``[u, v, a, b, c, o, red,
-    green, blue, z]`` (mean, conic, opacity, colour, depth) composited over the tiles of a :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``,
-    ``index``, ``counts``, ``starts``: :func:`bin_gaussians`'s flat lists); ``n_tx`` tiles of ``ts`` pixels per
-    row, a ``width x height`` image. CPU tensors; computed in float32, returned in the table's dtype. Colour and
-    depth come as separate tensors, so their gradients reach the kernel without a slice's backward."""
+    green, blue, z]`` (mean, conic, opacity, colour, depth) composited over the tiles of a
+    :class:`~vigs_core.mapping.rasterizer.TileBins` (``tiles``, ``index``, ``counts``, ``starts``:
+    :func:`bin_gaussians`'s flat lists); ``n_tx`` tiles of ``ts`` pixels per row, a ``width x height`` image. CPU
+    tensors; computed in float32, returned in the table's dtype. Colour and depth come as separate tensors, so
+    their gradients reach the kernel without a slice's backward."""
 
     @staticmethod
     def forward(ctx, table, bins, n_tx, ts, width, height):
