@@ -510,8 +510,9 @@ def _append_zero_row(v: torch.Tensor) -> torch.Tensor:
 
 class TorchRasterizer:
     """Tile-based rasterizer on PyTorch tensors (CPU or GPU); see the module docstring. With ``compiled`` (used
-    for CPU tensors) projection, binning and compositing run in the numba kernels of :mod:`vigs_core.mapping.rasterizer_numba`
-    instead of the torch reference: the same model and tiles, with 3DGS's early stop per pixel."""
+    for CPU tensors) projection, binning and compositing run in the numba kernels of
+    :mod:`vigs_core.mapping.rasterizer_numba` instead of the torch reference: the same model and tiles, with 3DGS's
+    early stop per pixel."""
 
     def __init__(self, settings: RenderSettings | None = None, compiled: bool = False) -> None:
         self.settings = settings or RenderSettings()
@@ -561,7 +562,7 @@ class TorchRasterizer:
         with torch.no_grad():
             if compiled:
                 bins = rasterizer_numba.bin_gaussians(
-                    *(x.detach().index_select(0, sel) for x in (mean2d, half, z, conic, reach)), n_tx, n_ty, ts,
+                    *(x.index_select(0, sel) for x in (mean2d, half, z, conic, reach)), n_tx, n_ty, ts,
                     camera.width, camera.height, s.max_per_tile,
                 )  # fmt: skip
             else:

@@ -232,9 +232,10 @@ def _bin(mean2d, half, conic, reach, order, ts, n_tx, n_ty, width, height, max_p
 def bin_gaussians(mean2d, half_extent, depth, conic, reach, n_tx: int, n_ty: int, ts: int, width: int, height: int,
                   max_per_tile: int) -> TileBins:
     """:func:`~vigs_core.mapping.rasterizer.bin_gaussians` with the ellipse test, compiled (CPU tensors, no
-    gradient): the same tiles, each's front-most ``max_per_tile`` Gaussians ordered by ``depth``, in the flat
-    layout (``TileBins.starts``): its size follows the tile-Gaussian pairs, not the busiest tile times the tiles,
-    so a high ``max_per_tile`` costs only the Gaussians composited."""
+    gradient): the same tiles, each's front-most ``max_per_tile`` Gaussians ordered by ``depth`` (rounded to
+    float32, the kernels' precision; equal depths by row), in the flat layout (``TileBins.starts``): its size
+    follows the tile-Gaussian pairs, not the busiest tile times the tiles, so a high ``max_per_tile`` costs only
+    the Gaussians composited."""
     arrays = [t.detach().contiguous().numpy() for t in (mean2d, half_extent, conic, reach)]
     order = depth_order(depth.detach().to(torch.float32).numpy())
     counts, starts, index, binned = _bin(*arrays, order, ts, n_tx, n_ty, width, height, max_per_tile)
