@@ -1,6 +1,6 @@
 """IMU faults on the shipped sample, through the streaming core the frontend node drives
 (:class:`vigs_core.system.stream.OdometryStream`: IMU samples in recorded order, each frame once the IMU covers
-it): a 2 s IMU gap after the IMU initialisation, one IMU sample stamped 1000 s in the future, an
+it): a 2 s IMU gap after the IMU initialisation and one before it, one IMU sample stamped 1000 s in the future, an
 accelerometer bias step, and (forced) a rolling scale check that fails.
 
 Every case checks the metric claim: no frame published as metric is off by more than ``BAD_M``.
@@ -29,6 +29,7 @@ from vigs_core.vio import odometry as vio_odometry
 from vigs_core.vio.odometry import METRIC_STATUSES, batches_up_to
 
 GAP_START_S = 13.0
+EARLY_GAP_S = 7.0
 GAP_S = 2.0
 GAP_ATE_M = 0.03
 BAD_M = 0.5
@@ -133,6 +134,19 @@ def test_an_imu_gap_is_not_integrated_across(clean):
     speed = v.norm(dim=1).numpy()
     assert inside.any() and np.isnan(speed[inside]).all()
     assert np.isfinite(speed[t > t0 + int(GAP_S * 1e9) + 10**9]).all() and np.nanmax(speed) < 3.0
+
+
+def test_an_imu_gap_before_the_initialisation_delays_it_by_the_stage_count_only(clean):
+    """A 2 s gap from ``EARLY_GAP_S`` (the clean run initialises at 10.7 s): the inertial-only stage solves over
+    the keyframes after the gap (measured: metric from 16.7 s, ATE 0.8 cm over the metric frames). Before, its
+    window had to clear the gap first, and the sample ended without a metric frame."""
+    imu, _ = clean
+    t0 = int(imu.t_ns[0]) + int(EARLY_GAP_S * 1e9)
+    keep = (imu.t_ns < t0) | (imu.t_ns >= t0 + int(GAP_S * 1e9))
+    ate, remarks, stream = stream_run(ImuSamples(imu.t_ns[keep], imu.gyro[keep], imu.acc[keep]))
+    assert any("IMU gap" in r for r in remarks), remarks
+    assert stream.metric and stream.odometry.vio.metric_since_ns > t0 + int(GAP_S * 1e9)
+    assert ate <= GAP_ATE_M
 
 
 def test_a_future_stamped_imu_sample_is_rejected(clean):

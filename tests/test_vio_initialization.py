@@ -7,8 +7,10 @@ import torch
 
 from vigs_core.geometry import se3_inverse, so3_exp
 from vigs_core.imu.analytic_motion import AnalyticMotion
+from vigs_core.imu.buffer import ImuBuffer
 from vigs_core.imu.preintegration import preintegrate
 from vigs_core.solver import BAConfig, bundle_adjust, reproject
+from vigs_core.types import ImuSamples
 from vigs_core.vio.config import ABLATIONS, VioConfig
 from vigs_core.vio.estimator import VisualInertialEstimator
 from vigs_core.vio.initialization import Stage, StagedInitializer, WorldAlignment
@@ -57,6 +59,38 @@ def test_staged_initialisation_recovers_scale_and_gravity():
         assert (out.velocities.norm(dim=-1) - sc.velocities.norm(dim=-1)).abs().max() < 0.05
         assert (out.velocities[:, 2] - sc.velocities[:, 2]).abs().max() < 0.05
         assert (out.bias[:3] - torch.tensor(sc.bias_gyro, **F64)).abs().max() < 2e-3
+
+
+def test_an_imu_gap_delays_the_inertial_stage_by_its_keyframe_count_only():
+    """A gap before the initialisation: the stage solves over the keyframes after it once there are 20 of them
+    (K = 29 tries, K = 30 agrees), instead of waiting until the gap has left its window of up to 40 keyframes
+    (never, in 32 keyframes); the keyframes before the gap get finite-difference velocities."""
+    sc = make_scenario(n=32, spacing_s=0.3, seed=3, duration_s=14.0, bias_gyro=(0.002, -0.02, 0.01),
+                       bias_acc=(0.05, -0.1, 0.08), imu_noise=True)
+    gap = (sc.imu.t_ns > sc.stamps_ns[8] + 10**7) & (sc.imu.t_ns < sc.stamps_ns[9] - 10**7)
+    imu = ImuSamples(sc.imu.t_ns[~gap], sc.imu.gyro[~gap], sc.imu.acc[~gap])
+    T_cw = _visual_frame(sc, 0.37, rot_noise_deg=0.2, seed=3)
+    init = StagedInitializer(VioConfig(), imu, NOISE, T_CB)
+    outcomes = {K: init.on_keyframe(sc.stamps_ns[:K], T_cw[:K]) for K in range(3, 33)}
+    assert [a["keyframes"] for a in init.attempts] == [29, 30] and init.stage == Stage.VISUAL_INERTIAL
+    out = outcomes[30]
+    assert abs(out.alignment.scale * 0.37 - 1.0) < 0.02
+    assert torch.isfinite(out.velocities).all()
+    assert (out.velocities[9:30].norm(dim=-1) - sc.velocities[9:30].norm(dim=-1)).abs().max() < 0.05
+
+
+def test_gap_free_from_finds_where_the_imu_covers_up_to_the_newest_sample():
+    buf = ImuBuffer.of(ImuSamples(np.array([0, 5, 10, 15, 40, 45, 50, 80, 85]) * 10**6, np.zeros((9, 3)),
+                                  np.zeros((9, 3))))
+    ms = 10**6
+    assert buf.gap_free_from(2 * ms, 14 * ms, 10 * ms) == 2 * ms            # covered: the start itself
+    assert buf.gap_free_from(2 * ms, 48 * ms, 10 * ms) == 40 * ms           # after the 15 -> 40 ms gap
+    assert buf.gap_free_from(2 * ms, 84 * ms, 10 * ms) == 80 * ms           # the last of two gaps
+    assert buf.gap_free_from(2 * ms, 84 * ms, 30 * ms) == 2 * ms            # no gap at this tolerance
+    assert buf.gap_free_from(2 * ms, 86 * ms, 10 * ms) is None              # not reached yet
+    assert buf.gap_free_from(20 * ms, 44 * ms, 10 * ms) == 40 * ms          # the gap spans the start
+    late = ImuBuffer.of(ImuSamples(np.array([30, 35, 40]) * ms, np.zeros((3, 3)), np.zeros((3, 3))))
+    assert late.gap_free_from(2 * ms, 38 * ms, 10 * ms) == 30 * ms          # the record does not reach back
 
 
 def test_alignment_keeps_reprojections_and_rotates_gravity():

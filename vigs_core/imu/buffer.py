@@ -148,6 +148,18 @@ class ImuBuffer:
         t = self.samples(start_ns, end_ns).t_ns
         return len(t) < 2 or int(np.diff(t).max()) <= max_gap_ns
 
+    def gap_free_from(self, start_ns: int, end_ns: int, max_gap_ns: int) -> int | None:
+        """The earliest time ``t >= start_ns`` such that the samples cover ``[t, end_ns]`` with no two consecutive
+        samples over it further apart than ``max_gap_ns`` (:meth:`covers_interval`): ``start_ns`` when that
+        whole interval is covered, else the stamp of the sample that ends the last gap (or of the oldest sample
+        held); None when no sample at or after ``end_ns`` is held yet. A window of keyframes can then keep the
+        part after an IMU gap instead of waiting for the gap to leave it."""
+        if len(self) < 2 or self.latest_ns < end_ns:
+            return None
+        t = self.samples(start_ns, end_ns).t_ns
+        gaps = np.nonzero(np.diff(t) > max_gap_ns)[0]
+        return max(int(t[gaps[-1] + 1]) if len(gaps) else int(t[0]), int(start_ns))
+
     def samples(self, start_ns: int, end_ns: int) -> ImuSamples:
         """Samples in ``[start_ns, end_ns]`` plus the last one before and the first one after (when held),
         so integration can interpolate both boundaries."""

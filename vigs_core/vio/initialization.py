@@ -18,7 +18,10 @@ parameters, paper values 10 and 20):
    the joint VI-BA with metric scale and gravity fixed along ``-z``.
 
 After a failure (:meth:`StagedInitializer.restart`) the machine is back in stage 1 and the inertial-only stage
-uses only keyframes from the restart on, once there are ``inertial_init_keyframes`` of them.
+uses only keyframes from the restart on, once there are ``inertial_init_keyframes`` of them. Likewise after an
+IMU gap (longer than ``max_imu_gap_s``) or where the IMU record no longer reaches back (a streaming buffer
+keeps ``max_age_s``): the stage solves over the keyframes after it, once there are ``inertial_init_keyframes``
+of them, instead of waiting until the gap has left its whole window.
 
 Without staging (the Table 6 ablation) ``JOINT_UNALIGNED`` replaces stages 1-2 from ``vision_only_keyframes``
 on: joint VI-BA with gravity direction and log-scale as free states, started from the mean accelerometer
@@ -146,6 +149,13 @@ class StagedInitializer:
         return self.imu_buffer.covers_interval(int(stamps_ns[0]), int(stamps_ns[-1]),
                                                int(self.config.max_imu_gap_s * 1e9))
 
+    def _covered_start(self, stamps_ns: np.ndarray, lo: int) -> int | None:
+        """Index of the first keyframe from ``lo`` on that the IMU covers gap-free up to the newest one
+        (:meth:`~vigs_core.imu.buffer.ImuBuffer.gap_free_from`), or None when the IMU does not reach the newest."""
+        since = self.imu_buffer.gap_free_from(int(stamps_ns[lo]), int(stamps_ns[-1]),
+                                              int(self.config.max_imu_gap_s * 1e9))
+        return None if since is None else lo + int(np.searchsorted(stamps_ns[lo:], since, side="left"))
+
     def inertial_config(self) -> InertialInitConfig:
         c = self.config
         return InertialInitConfig(gravity=c.gravity, max_log_scale_std=c.max_init_log_scale_std,
@@ -170,12 +180,15 @@ class StagedInitializer:
             return None
         if K - self.first < c.inertial_init_keyframes:
             return None
-        # the most recent keyframes, at most twice the stage's count (older poses drifted and are frozen)
-        keep = slice(max(self.first, K - 2 * c.inertial_init_keyframes), K)
-        stamps, poses = np.asarray(stamps_ns[keep], dtype=np.int64), T_cw[keep].to(torch.float64)
-        if not self._covers(stamps):
+        # the most recent keyframes, at most twice the stage's count (older poses drifted and are frozen), and
+        # of those only the ones after the last IMU gap: the stage's count of them is enough to try
+        lo = max(self.first, K - 2 * c.inertial_init_keyframes)
+        start = self._covered_start(np.asarray(stamps_ns, dtype=np.int64), lo)
+        if start is None or K - start < c.inertial_init_keyframes:
             self._candidate = None
-            return None   # the IMU does not cover these keyframes: stay vision-only
+            return None   # the IMU does not cover enough of the latest keyframes: stay vision-only
+        keep = slice(start, K)
+        stamps, poses = np.asarray(stamps_ns[keep], dtype=np.int64), T_cw[keep].to(torch.float64)
         previous, self._candidate = self._candidate, None
         try:
             result = inertial_only_init(se3_inverse(poses), stamps, self.imu, self.noise, self.T_cb,
