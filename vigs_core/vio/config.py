@@ -65,8 +65,8 @@ class VioConfig:
             across it no inertial factor (the window's other intervals keep theirs; the window holds its fixed
             keyframe's depth at once, as the scale's only carrier), and a keyframe after it takes its velocity
             from the keyframe positions; before the initialisation, the inertial-only stage solves over the
-            keyframes after the gap once there are ``inertial_init_keyframes`` of them. Integrating across it (the linear signal model) sent a 2 s gap's
-            trajectory kilometres away.
+            keyframes after the gap once there are ``inertial_init_keyframes`` of them. Integrating across it
+            (the linear signal model) sent a 2 s gap's trajectory kilometres away.
         marginalize: once the map is metric, a keyframe leaving the BA window is marginalised into a Gaussian
             prior on the window's remaining poses, velocities and biases (:mod:`vigs_core.vio.marginalization`),
             and BA holds no keyframe fixed (the prior carries the gauge and the window's scale and velocity
