@@ -8,6 +8,9 @@ motion, rendered images) into ``--cache`` once. Cases:
 * ``SEQ stride10``, ``SEQ drop30``: the offset-0 clip with every 10th frame, or 30% of the frames dropped at
   random (a copy of the clip's frame list; the IMU is kept);
 * ``SEQ imu_gap``: the offset-0 clip without 2 s of IMU samples from ``--fault-at`` s;
+* ``SEQ imu_gap_init``: the offset-0 clip without 2 s of IMU samples ending 1 s before its clean run's alignment
+  (the ``init_s`` of its ``SEQ@0`` row, run first when the table has none): a gap among the keyframes the
+  inertial-only initialisation solves over;
 * ``SEQ imu_future``: the offset-0 clip with one IMU sample stamped 1000 s in the future at ``--fault-at`` s, fed in
   recorded order (a file reader sorts stamps, so this case drives :class:`~vigs_core.system.stream.OdometryStream`
   sample by sample as the frontend node does; no loop closure);
@@ -140,6 +143,18 @@ def acc_step(at_s: float, step: float):
     return edit
 
 
+def gap_before_alignment(base: Path, short: str, rows: list[dict], args) -> Path:
+    """The ``SEQ imu_gap_init`` clip: ``base`` (the offset-0 clip) without 2 s of IMU ending 1 s before the clean
+    run's alignment, from the table's ``SEQ@0`` row or, without one, a clean run made here."""
+    init_s = next((r.get("init_s") for r in rows if r["case"] == f"{short}@0"), None)
+    if init_s is None:
+        out = Path(args.cache) / "runs" / (f"{short}@0" + args.tag)
+        init_s = score(base, out, run_clip(base, out, args.params))["init_s"]
+    if init_s is None or init_s < 3.0:
+        raise RuntimeError(f"the clean clip aligns at {init_s} s: no room for a 2 s gap before it")
+    return variant(base, "_imugapinit", imu_edit=imu_gap(init_s - 3.0, 2.0))
+
+
 def pipeline_config(params: str | None):
     """The run's settings: defaults or ``--params`` (as ``vigs run --params``), mapping off."""
     from vigs_core.system import load_config
@@ -246,6 +261,7 @@ def cases(args) -> list[tuple[str, Path | None, str]]:
             out.append((f"{short} drop30", variant(base, "_drop30", lambda k: bool(drop[k])), "run"))
         if "faults" in args.cases and base is not None:
             out.append((f"{short} imu_gap", variant(base, "_imugap", imu_edit=imu_gap(args.fault_at, 2.0)), "run"))
+            out.append((f"{short} imu_gap_init", base, "gap_init"))
             out.append((f"{short} imu_future", base, "future"))
             out.append((f"{short} acc_step", variant(base, "_accstep", imu_edit=acc_step(args.fault_at, 3.0)), "run"))
         if "degradations" in args.cases:
@@ -293,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.cache) / "runs" / (name.replace(" ", "_") + args.tag)
         t0 = time.perf_counter()
         try:
+            if kind == "gap_init":
+                clip = gap_before_alignment(clip, name.split()[0], rows, args)
             report = (run_future_stamp(clip, out, args.fault_at, args.params) if kind == "future"
                       else run_clip(clip, out, args.params))
             row = {"case": name, **score(clip, out, report)}
