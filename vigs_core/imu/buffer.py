@@ -143,10 +143,7 @@ class ImuBuffer:
         over it (the bracketing ones included) are further apart than that."""
         if len(self) < 2 or self.earliest_ns > start_ns or self.latest_ns < end_ns:
             return False
-        if max_gap_ns is None:
-            return True
-        t = self.samples(start_ns, end_ns).t_ns
-        return len(t) < 2 or int(np.diff(t).max()) <= max_gap_ns
+        return max_gap_ns is None or self.gap_free_from(start_ns, end_ns, max_gap_ns) == start_ns
 
     def gap_free_from(self, start_ns: int, end_ns: int, max_gap_ns: int) -> int | None:
         """The earliest time ``t >= start_ns`` such that the samples cover ``[t, end_ns]`` with no two consecutive
