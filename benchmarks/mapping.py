@@ -9,6 +9,7 @@ sequence as ``vigs bench tracking`` does (whose runner this uses). Rows:
 * ``cpu_ms``: user + system CPU per frame of the run and its children (tracking, mapping, loop closure, the
   evaluation renders and the refinement included);
 * ``kf``, ``kf_per_s``: keyframes mapped and the mapper's keyframes per second of its own wall time;
+  ``kept``: those still held at the end (the rest released by keyframe culling);
   ``wait_s``: how long the run waited for the mapper's backlog at the end;
 * ``gaussians``, ``render``: the map's size and the render size;
 * ``psnr`` / ``ssim``: non-keyframe frames rendered at their final poses, online (before the refinement) and
@@ -36,6 +37,8 @@ def row(sequence: str, label: str, report: dict) -> dict:
     render = mapping.get("render_size") or []
     return {"sequence": sequence, "version": label, "frames": n, "fps": report["frames_per_s"],
             "cpu_ms": round(1000 * report["cpu_s"] / n, 1), "kf": mapping.get("keyframes_mapped"),
+            "kept": (mapping["keyframes_mapped"] - mapping["keyframes_released"]
+                     if "keyframes_released" in mapping else None),
             "kf_per_s": mapping.get("keyframes_per_s"), "wait_s": mapping.get("wait_at_end_s"),
             "gaussians": mapping.get("gaussians"), "render": "x".join(str(v) for v in render),
             "psnr": online.get("psnr", math.nan), "ssim": online.get("ssim", math.nan),

@@ -405,3 +405,61 @@ def test_stop_cuts_the_keyframe_in_hand_short_so_shutdown_is_bounded():
         mapper.stop()
     assert time.monotonic() - t0 < 2.0
     assert mapper.stats.keyframes == 1 and mapper.stats.cut_short == 1 and 0 < mapper.stats.steps < 2000
+
+
+def test_keyframes_the_map_covers_near_a_kept_one_are_released_so_revisits_do_not_grow_the_keyframes():
+    """Two laps of the same orbit: with culling the keyframes a kept one already covers are released once they
+    leave the window (pixels dropped, Gaussians re-anchored to a kept keyframe), the second lap keeps almost none,
+    and views between the keyframes still render well; without culling every keyframe stays."""
+    lap = [0.1 * i for i in range(32)]
+    kept_after, mappers = [], {}
+    for cull in (False, True):
+        mapper = mappers[cull] = _mapper(iterations=4, cull_keyframes=cull)
+        _feed(mapper, lap)
+        mapper.process_pending()
+        kept_after.append(len(mapper.keyframes))
+        _feed(mapper, lap, first_id=len(lap))
+        mapper.process_pending()
+        kept_after.append(len(mapper.keyframes))
+    assert kept_after[:2] == [32, 64] and mappers[False].stats.released == 0
+    first_lap, both_laps = kept_after[2:]
+    assert first_lap <= 16 and both_laps <= first_lap + 2, kept_after
+    mapper = mappers[True]
+    assert mapper.stats.released == 64 - both_laps
+    assert len(mapper.pixel_store) == both_laps
+    assert set(mapper.map.anchor_ids.unique().tolist()) <= set(mapper.keyframes)
+    assert set(range(64 - mapper.config.window, 64)) <= set(mapper.keyframes)   # the local window stays
+    for a in (0.05, 1.25, 2.95):
+        T = orbit_pose(a)
+        image, _ = raycast(T, CAMERA)
+        assert psnr(mapper.render(T).color, image) > 30.0, f"view at angle {a}"
+
+
+def test_a_released_keyframes_gaussians_follow_the_kept_keyframe_and_its_pose_updates_are_not_unknown():
+    mapper = _mapper(iterations=2)
+    _feed(mapper, [0.0, 0.04, 0.08, 0.12, 0.16])   # one place, covered by keyframe 0
+    mapper.step(), mapper.step()
+    from_1 = mapper.map.ids[mapper.map.anchor_ids == 1]
+    assert from_1.numel() > 0   # keyframe 1 added a few Gaussians at its border
+    mapper.process_pending()
+    # keyframe 1 left the window of the 3 most recent: released; 2, 3 and 4 wait in it
+    assert sorted(mapper.keyframes) == [0, 2, 3, 4] and mapper.stats.released == 1
+    assert sorted(mapper._covered) == [2, 3, 4]
+    moved_along = mapper.map.anchor_ids == 0
+    assert bool(torch.isin(from_1, mapper.map.ids[moved_along]).all())
+    assert int(moved_along.sum()) > 0
+    T0 = mapper.keyframes[0].T_WC
+    shift = se3_exp(torch.tensor([0.2, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    means = mapper.map.means.clone()
+    mapper.update_keyframe_poses({0: shift @ T0, 1: shift @ T0, 77: T0})
+    mapper.process_pending()
+    assert torch.allclose(mapper.map.means[moved_along], means[moved_along] + torch.tensor([0.2, 0.0, 0.0]),
+                          atol=1e-5)
+    assert mapper.stats.ignored_pose_ids == [77]   # released keyframe 1 is not unknown
+
+
+def test_keyframes_that_see_new_parts_of_the_scene_are_kept():
+    mapper = _mapper(iterations=2)
+    _feed(mapper, [0.0, 0.5, 1.0, 1.5, 2.0, 2.5])
+    mapper.process_pending()
+    assert sorted(mapper.keyframes) == list(range(6)) and mapper.stats.released == 0

@@ -132,6 +132,7 @@ class MapperNode(VigsNode):
         self.status.info["keyframes_deferred"] = str(self.mapper.deferred())
         stats = self.mapper.stats
         self.status.info["keyframes_mapped"] = str(stats.keyframes)
+        self.status.info["keyframes_released"] = str(stats.released)
         self.status.info["steps_per_keyframe"] = f"{stats.steps / max(stats.keyframes, 1):.1f}"
         self.status.info["keyframes_cut_short"] = str(stats.cut_short)
         self.status.info["idle_steps"] = str(stats.idle_steps)

@@ -18,6 +18,12 @@ For every new keyframe (image, depth, pose ``T_WC``):
    same image as rendering all), so its cost follows the Gaussians in view, not the size of the map.
 3. **Pruning**: Gaussians with opacity below ``prune_min_opacity`` or whose largest standard deviation
    exceeds ``prune_max_angular`` times their distance to their anchor keyframe (oversized) are removed.
+4. **Keyframe culling** (ours, for long missions): a keyframe whose view the map already covered (new Gaussians
+   at no more than ``cull_max_new_fraction`` of its pixels in step 1) and that lies near a kept keyframe (within
+   ``cull_baseline`` times its median depth and ``cull_rotation_deg``) is released once it leaves the local
+   window: its Gaussians are re-anchored to that keyframe and its pixels dropped. A kept keyframe is never
+   released, so on a revisited scene the keyframes, the spilled pixels and the schedule's draws stay bounded
+   by the places seen, not by the time spent (as ORB-SLAM culls keyframes that others already cover).
 
 Keyframe pose/scale corrections move anchored Gaussians in one batch (:mod:`vigs_core.mapping.anchor`).
 The mapper is fed through an inbox (:mod:`vigs_core.mapping.inbox`): :meth:`GaussianMapper.add_keyframe` and
@@ -106,6 +112,12 @@ class MapperConfig:
             long the queue (offline runs).
         keyframe_store: where the keyframes' pixels live: the most recent in memory, older ones on disk
             (:class:`vigs_core.spill.SpillStore`); read back when the schedule or a refinement picks them.
+        cull_keyframes: release covered keyframes near a kept one (step 4 of the module docstring; off: every
+            keyframe is kept for the whole run).
+        cull_max_new_fraction: a keyframe that got new Gaussians at more than this fraction of its pixels is kept.
+        cull_baseline: distance to the nearest kept keyframe, in the keyframe's median depths, within which it
+            may be released.
+        cull_rotation_deg: rotation to that kept keyframe within which it may be released, degrees.
         refine_when_idle: the worker thread (:meth:`GaussianMapper.run_async`), when nothing is queued, keeps
             optimising, one step at a time on a keyframe drawn uniformly from the mapped ones, so CPU left
             over improves the map (a live mapper at low priority); off: it waits.
@@ -137,6 +149,10 @@ class MapperConfig:
     retain_heap: bool = True
     max_backlog: int = bounded(0, 0)
     refine_when_idle: bool = False
+    cull_keyframes: bool = True
+    cull_max_new_fraction: float = bounded(0.05, 0, 1)
+    cull_baseline: float = bounded(0.1, 0)
+    cull_rotation_deg: float = bounded(10.0, 0, 180)
     keyframe_store: SpillConfig = field(default_factory=SpillConfig)
 
     def __post_init__(self) -> None:
@@ -191,7 +207,7 @@ class MapDelta:
 class MapperStats:
     """Counters of a mapper: keyframes integrated (``cut_short`` of them with fewer than ``iterations``
     optimisation steps: behind, or at shutdown), their optimisation ``steps``, seconds spent on them, steps taken
-    while idle, Gaussians added/pruned."""
+    while idle, Gaussians added/pruned, keyframes ``released`` (culled)."""
 
     keyframes: int = 0
     cut_short: int = 0
@@ -201,6 +217,7 @@ class MapperStats:
     added: int = 0
     pruned: int = 0
     pose_updates: int = 0
+    released: int = 0
     ignored_pose_ids: list[int] = field(default_factory=list)
 
 
@@ -296,6 +313,8 @@ class GaussianMapper:
         self._new = torch.zeros(0, dtype=torch.bool, device=self.device)
         self._dirty = torch.zeros(0, dtype=torch.bool, device=self.device)
         self._removed: list[torch.Tensor] = []
+        self._covered: dict[int, int] = {}   # keyframe to release when it leaves the window -> kept keyframe near it
+        self._released: set[int] = set()
 
     # ------------------------------------------------------------------ public API: feeding
     def add_keyframe(self, kf_id: int, T_WC, image, depth, timestamp_ns: int | None = None) -> None:
@@ -565,6 +584,9 @@ class GaussianMapper:
                     out = self._render(self.map, kf.T_WC, self.render_camera)
                 expected = out.depth / out.alpha.clamp_min(1e-6)
                 mask = (out.alpha < c.densify_alpha) | (depth < (1.0 - c.densify_depth_ratio) * expected)
+                cover = self._kept_keyframe_near(kf, depth, mask) if c.cull_keyframes else None
+                if cover is not None:
+                    self._covered[kf.id] = cover
             new = gaussians_from_depth(
                 kf.image(), depth, kf.T_WC.float(), self.render_camera, kf.id, self._next_id,
                 c.init_stride, c.init_scale, mask,
@@ -583,6 +605,7 @@ class GaussianMapper:
             steps += 1
         with self._lock:
             self._prune()
+            self._release_covered()
         self.stats.keyframes += 1
         self.stats.steps += steps
         self.stats.cut_short += steps < c.iterations
@@ -651,10 +674,43 @@ class GaussianMapper:
         drop = (self.map.opacities() < c.prune_min_opacity) | too_big
         self._remove(drop)
 
+    def _kept_keyframe_near(self, kf: Keyframe, depth: torch.Tensor, new_mask: torch.Tensor) -> int | None:
+        """The nearest kept keyframe within ``cull_baseline`` x the median depth and ``cull_rotation_deg`` of ``kf``
+        when the map covered its view (``new_mask``: pixels that get new Gaussians), else None."""
+        c = self.config
+        valid = depth > 0
+        if float(new_mask.float().mean()) > c.cull_max_new_fraction or not bool(valid.any()):
+            return None
+        kept = [k for k in self.keyframes if k != kf.id and k not in self._covered]
+        if not kept:
+            return None
+        poses = torch.stack([self.keyframes[k].T_WC for k in kept])
+        dist = (poses[:, :3, 3] - kf.T_WC[:3, 3]).norm(dim=1)
+        cos = ((poses[:, :3, :3] * kf.T_WC[:3, :3]).sum(dim=(1, 2)) - 1.0) / 2.0   # tr(R_j^T R_k) = 1 + 2 cos
+        near = (dist <= c.cull_baseline * float(depth[valid].median())) & (
+            cos >= math.cos(math.radians(c.cull_rotation_deg)))
+        if not bool(near.any()):
+            return None
+        return kept[int(torch.where(near, dist, torch.full_like(dist, math.inf)).argmin())]
+
+    def _release_covered(self) -> None:
+        """Release the covered keyframes that left the local window (the ``window`` most recent): their Gaussians
+        follow the kept keyframe near them from now on (:func:`anchored_update` moves them with it)."""
+        recent = set(sorted(self.keyframes)[-self.config.window:])
+        for k in [k for k in self._covered if k not in recent]:
+            cover = self._covered.pop(k)
+            on = self.map.anchor_ids == k
+            self.map.anchor_ids = self.map.anchor_ids.masked_fill(on, cover)
+            self._dirty |= on
+            del self.keyframes[k]
+            self.pixel_store.discard(k)
+            self._released.add(k)
+            self.stats.released += 1
+
     def _move_keyframes(self, poses: dict[int, torch.Tensor], scales: dict[int, float]) -> None:
         with self._lock:
             known = {k: v for k, v in poses.items() if k in self.keyframes}
-            self.stats.ignored_pose_ids.extend(sorted(set(poses) - set(known)))
+            self.stats.ignored_pose_ids.extend(sorted(set(poses) - set(known) - self._released))
             if not known:
                 return
             known_scales = {k: float(s) for k, s in scales.items() if k in known}

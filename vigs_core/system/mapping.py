@@ -201,6 +201,7 @@ class OnlineMapping:
         out = {
             "gaussians": summary.gaussians,
             "keyframes_mapped": stats.keyframes,
+            "keyframes_released": stats.released,
             "mapping_s": round(stats.mapping_seconds, 3),
             "keyframes_per_s": round(stats.keyframes / stats.mapping_seconds, 3) if stats.mapping_seconds else None,
             "wait_at_end_s": round(self.wait_seconds, 3),
