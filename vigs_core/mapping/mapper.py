@@ -696,7 +696,7 @@ class GaussianMapper:
     def _release_covered(self) -> None:
         """Release the covered keyframes that left the local window (the ``window`` most recent): their Gaussians
         follow the kept keyframe near them from now on (:func:`anchored_update` moves them with it)."""
-        recent = set(sorted(self.keyframes)[-self.config.window:])
+        recent = set(self._window(max(self.keyframes)))
         for k in [k for k in self._covered if k not in recent]:
             cover = self._covered.pop(k)
             on = self.map.anchor_ids == k

@@ -183,12 +183,12 @@ class StagedInitializer:
         # the most recent keyframes, at most twice the stage's count (older poses drifted and are frozen), and
         # of those only the ones after the last IMU gap: the stage's count of them is enough to try
         lo = max(self.first, K - 2 * c.inertial_init_keyframes)
-        start = self._covered_start(np.asarray(stamps_ns, dtype=np.int64), lo)
+        all_stamps = np.asarray(stamps_ns, dtype=np.int64)
+        start = self._covered_start(all_stamps, lo)
         if start is None or K - start < c.inertial_init_keyframes:
             self._candidate = None
             return None   # the IMU does not cover enough of the latest keyframes: stay vision-only
-        keep = slice(start, K)
-        stamps, poses = np.asarray(stamps_ns[keep], dtype=np.int64), T_cw[keep].to(torch.float64)
+        stamps, poses = all_stamps[start:], T_cw[start:K].to(torch.float64)
         previous, self._candidate = self._candidate, None
         try:
             result = inertial_only_init(se3_inverse(poses), stamps, self.imu, self.noise, self.T_cb,
@@ -207,11 +207,11 @@ class StagedInitializer:
             return None
         alignment = alignment_from_gravity(result.R_wg, result.log_scale)
         vel = torch.zeros(K, 3, dtype=torch.float64)
-        vel[keep] = alignment.velocity(result.velocities)
-        if keep.start > 0:   # keyframes outside the solved window: finite differences of the aligned positions
-            p = se3_inverse(alignment.pose(T_cw[:keep.start + 1].to(torch.float64)))[:, :3, 3]
-            dt = np.diff(np.asarray(stamps_ns[:keep.start + 1], dtype=np.int64)) * 1e-9
-            vel[:keep.start] = (p[1:] - p[:-1]) / torch.as_tensor(dt)[:, None]
+        vel[start:] = alignment.velocity(result.velocities)
+        if start > 0:   # keyframes outside the solved window: finite differences of the aligned positions
+            p = se3_inverse(alignment.pose(T_cw[:start + 1].to(torch.float64)))[:, :3, 3]
+            dt = np.diff(all_stamps[:start + 1]) * 1e-9
+            vel[:start] = (p[1:] - p[:-1]) / torch.as_tensor(dt)[:, None]
         bias = torch.cat((result.bias_gyro, result.bias_acc))
         self.stage = Stage.VISUAL_INERTIAL
         return InitOutcome(alignment, vel, bias, result)
