@@ -133,9 +133,10 @@ def rotation_angle_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
 def rotation_cosines(T_new: torch.Tensor, T_old: Sequence[torch.Tensor]) -> np.ndarray:
     """``cos`` of the relative rotation angle between ``T_new`` (4, 4) and each pose of ``T_old`` (N of (4, 4)):
     ``cos theta_j = (tr(R_new^T R_j) - 1) / 2`` with ``tr(A^T B) = sum_ab A_ab B_ab`` (N,) (one vectorised pass
-    where :func:`rotation_angle_deg` per pair costs an SO(3) logarithm each)."""
+    where :func:`rotation_angle_deg` per pair costs an SO(3) logarithm each; the poses are stacked in one copy, not
+    sliced and converted one by one: the history grows with the run)."""
     R_new = T_new[:3, :3].to(F64).numpy()
-    R_old = np.stack([T[:3, :3].to(F64).numpy() for T in T_old]) if len(T_old) else np.zeros((0, 3, 3))
+    R_old = torch.stack(list(T_old))[:, :3, :3].to(F64).numpy() if len(T_old) else np.zeros((0, 3, 3))
     return (np.einsum("nab,ab->n", R_old, R_new) - 1.0) / 2.0
 
 
@@ -241,7 +242,7 @@ class LoopDetector:
         estimate, else the reason (module docstring, step 5)."""
         cfg = self.verification
         current = torch.linalg.inv(old.T_WC) @ new.T_WC
-        between = torch.stack([kf.T_WC[:3, 3] for kf in history if old.id <= kf.id <= new.id] + [new.T_WC[:3, 3]])
+        between = torch.stack([kf.T_WC for kf in history if old.id <= kf.id <= new.id] + [new.T_WC])[:, :3, 3]
         allowed = cfg.max_drift_fraction * path_length(between) + cfg.min_drift_m
         moved = float((relative[:3, 3] - current[:3, 3]).norm())
         if moved > allowed:
