@@ -7,7 +7,8 @@ import torch
 
 from vigs_core.frontend import (DISFlowConfig, DISFlowEstimator, FrameGraph, FrameGraphConfig, KeyframePolicy,
                                 KeyframePolicyConfig, PixelGrid)
-from vigs_core.frontend.odometry import PoseRows, _Frame
+from vigs_core.frontend.odometry import DenseOdometry, Keyframe, PoseRows, _Frame
+from vigs_core.solver import Intrinsics
 
 cv2.setNumThreads(1)
 W, H = 192, 128
@@ -208,6 +209,34 @@ def test_frame_records_keep_their_poses_compactly_and_hand_out_copies():
     assert torch.equal(frames[4].rel, poses[4])
     frames[4].rel, frames[4].odom = None, poses[0]
     assert frames[4].rel is None and torch.equal(frames[4].odom, poses[0]) and torch.equal(frames[5].rel, poses[5])
+
+
+def test_scaling_relative_translations_writes_the_frames_rows_across_chunks():
+    """A depth rescaling of reference keyframes (a loop correction, the IMU alignment) scales the translation of
+    each pose kept relative to them -- frames' ``rel`` across chunk boundaries, keyframes' ``tracked`` -- in one
+    scatter per chunk: rotations, the causal poses, frames of other keyframes and unset poses stay as they were."""
+    odo = DenseOdometry(Intrinsics(50.0, 50.0, 31.5, 23.5), 64, 48)
+    odo._pose_rows = rows = PoseRows(chunk=3)
+    R = torch.tensor(cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0], dtype=torch.float64)
+
+    def pose(x: float) -> torch.Tensor:
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3], T[:3, 3] = R, torch.tensor([x, 2 * x, -x], dtype=torch.float64)
+        return T
+
+    odo.frames += [_Frame(k, rows, ref=k % 3, rel=None if k == 4 else pose(0.1 * k), odom=pose(k)) for k in range(8)]
+    odo.keyframes[2] = Keyframe(2, 0, None, pose(0.0), None, tracked=(1, pose(0.5)))
+    old_tracked = odo.keyframes[2].tracked[1]
+    odo.scale_relative_translations({1: 2.0, 2: 0.5})
+    for k, f in enumerate(odo.frames):
+        factor = {0: 1.0, 1: 2.0, 2: 0.5}[k % 3]
+        if k == 4:
+            assert f.rel is None
+            continue
+        np.testing.assert_allclose(f.rel[:3, 3].numpy(), factor * pose(0.1 * k)[:3, 3].numpy(), atol=1e-15)
+        assert torch.equal(f.rel[:3, :3], R) and torch.equal(f.odom, pose(k))
+    np.testing.assert_allclose(odo.keyframes[2].tracked[1][:3, 3].numpy(), 2.0 * pose(0.5)[:3, 3].numpy())
+    assert torch.equal(old_tracked, pose(0.5))   # replaced, not edited in place
 
 
 def test_a_live_caller_tracks_frames_while_keyframe_flows_run_on_other_threads():

@@ -203,6 +203,15 @@ class FrameRows:
             out[sel] = self._blocks[b][offset[sel]] if part is None else self._blocks[b][offset[sel], part]
         return out
 
+    def put(self, rows: np.ndarray, values: np.ndarray, part: int) -> None:
+        """Store ``values`` (M, *shape[1:]) as ``part`` of the records of ``rows`` (M,), rows handed out
+        already: one scatter per chunk."""
+        rows = np.asarray(rows, dtype=np.int64)
+        block, offset = np.divmod(rows, self._chunk)
+        for b in np.unique(block):
+            sel = block == b
+            self._blocks[b][offset[sel], part] = values[sel]
+
 
 class PoseRows:
     """Append-only storage of the frames' poses: two (4, 4) float64 slots per frame (``rel`` and ``odom``) in a
@@ -231,6 +240,10 @@ class PoseRows:
     def set(self, row: int, slot: int, pose: torch.Tensor | None) -> None:
         """Store ``pose`` (4, 4) as float64 in ``slot`` of ``row`` (None unsets it)."""
         self._records.record(row)[slot] = np.nan if pose is None else pose.detach().to("cpu", torch.float64).numpy()
+
+    def put(self, rows: np.ndarray, slot: int, poses: np.ndarray) -> None:
+        """Store ``poses`` (M, 4, 4) in ``slot`` of ``rows`` (M,) in one scatter per chunk (NaN rows: unset)."""
+        self._records.put(rows, poses, slot)
 
 
 class _PoseSlot:
@@ -384,21 +397,21 @@ class DenseOdometry:
         """Multiply the translation of every pose kept relative to a keyframe -- each frame's ``rel`` and each
         keyframe's ``tracked`` pose -- by the factor ``scales[reference keyframe id]`` (1 for keyframes not in
         ``scales``), rotations unchanged: what re-expressing the reference keyframes' depth in new units (a
-        loop correction's depth scale, the IMU alignment's metric scale) does to them. One batched product;
-        the new tensors replace the old ones (never edited in place)."""
-        owners = [(f, rel) for f in self.frames if f.ref in scales and (rel := f.rel) is not None]
+        loop correction's depth scale, the IMU alignment's metric scale) does to them. The frames' poses are
+        scaled in their rows (one gather and one scatter: a loop correction late in a long run touches tens of
+        thousands of frames); the keyframes' tracked poses are replaced by new tensors (never edited in place)."""
+        owners = [f for f in self.frames if f.ref in scales]
+        if owners:
+            rows = np.fromiter((f._row for f in owners), np.int64, len(owners))
+            rel = self._pose_rows.take(rows, 0)   # an unset pose is NaN and stays so
+            rel[:, :3, 3] *= np.fromiter((scales[f.ref] for f in owners), np.float64, len(owners))[:, None]
+            self._pose_rows.put(rows, 0, rel)
         tracked = [kf for kf in self.keyframes.values() if kf.tracked is not None and kf.tracked[0] in scales]
-        if not owners and not tracked:
-            return
-        rels = torch.stack([rel for _, rel in owners] + [kf.tracked[1] for kf in tracked])
-        factor = torch.tensor([scales[f.ref] for f, _ in owners] + [scales[kf.tracked[0]] for kf in tracked],
-                              dtype=rels.dtype)
-        rels[:, :3, 3] *= factor[:, None]
-        out = rels.unbind(0)
-        for (f, _), rel in zip(owners, out):
-            f.rel = rel
-        for kf, rel in zip(tracked, out[len(owners):]):
-            kf.tracked = (kf.tracked[0], rel)
+        if tracked:
+            rels = torch.stack([kf.tracked[1] for kf in tracked]).to(torch.float64)
+            rels[:, :3, 3] *= torch.tensor([scales[kf.tracked[0]] for kf in tracked], dtype=torch.float64)[:, None]
+            for kf, rel in zip(tracked, rels.unbind(0)):
+                kf.tracked = (kf.tracked[0], rel)
 
     def odometry_poses(self) -> tuple[np.ndarray, torch.Tensor]:
         """Times (N,) ns and causal world->camera poses (N, 4, 4) as output while running."""
