@@ -22,6 +22,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 
+from vigs_core.gc_freeze import freeze_startup_objects
 from vigs_core.heap import single_arena
 from vigs_ros.params import ParamSpec
 
@@ -283,6 +284,7 @@ def run_nodes(factories: Sequence[Callable[..., Node]], args: list[str] | None =
                     else SingleThreadedExecutor(context=context))
         for node in nodes:
             executor.add_node(node)
+        freeze_startup_objects()   # the modules and the nodes: full collections skip them
         while context.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=SIGNAL_POLL_S)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -46,6 +46,7 @@ from vigs_core.arrays import host
 from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
 from vigs_core.frontend.correspondence import PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
+from vigs_core.gc_freeze import freeze_startup_objects
 from vigs_core.heap import map_large_blocks, peak_rss_mb
 from vigs_core.loop.closure import InformationSource, LoopClosure, LoopStats
 from vigs_core.loop.config import LoopConfig
@@ -59,6 +60,7 @@ def _child(conn: Any, config: LoopConfig, grid: PixelGrid, flow: DISFlowConfig, 
     enter_child("vigs-loop", config.process_nice)
     map_large_blocks()   # image-sized temporaries must not fragment the heap over a long run
     closure = LoopClosure(replace(config, asynchronous=False), DISFlowEstimator(grid, flow), intr)
+    freeze_startup_objects()
     try:
         _serve(conn, closure)
     finally:

@@ -30,6 +30,7 @@ import torch
 
 from vigs_core.arrays import host
 from vigs_core.child_process import ChildChannel, ChildProcessEnded, enter_child, messages, send
+from vigs_core.gc_freeze import freeze_startup_objects
 from vigs_core.heap import peak_rss_mb
 from vigs_core.mapping.gaussians import GaussianMap
 from vigs_core.mapping.mapper import GaussianMapper, MapperConfig, MapperSummary
@@ -57,6 +58,7 @@ def _child(conn: Any, config: MapperConfig, camera: Any, device: str, nice: int)
     """The child process: a :class:`GaussianMapper` on its worker thread, driven by the parent's messages."""
     enter_child("vigs-mapper", nice)
     mapper = GaussianMapper(config, camera, device)
+    freeze_startup_objects()
     mapper.run_async()
     try:
         _serve(conn, mapper)
