@@ -212,3 +212,20 @@ def test_evaluation_images_are_a_bounded_uniform_sample_of_a_long_run():
         assert kept[0] < 1000 and kept[-1] > 3000   # spread over the run, not its first or last frames
     finally:
         online.close()
+
+
+def test_a_refinement_a_signal_cuts_short_is_marked_interrupted():
+    """A stop request during the map's evaluation leaves the refinement out and says so (``interrupted``), so a
+    report never reads as a finished map without its refinement; without one the refinement runs."""
+    odo = _FakeOdometry()
+    online = OnlineMapping(MappingConfig(keyframe_delay=1, final_refine_iterations=2,
+                                         mapper=MapperConfig(iterations=2), process=False), odo, CAM)
+    try:
+        online.finish()
+        t_ns, T_WC = np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
+        stopped = online.evaluate(t_ns, T_WC, stop=lambda: True)
+        assert stopped["interrupted"] and "refined" not in stopped
+        finished = online.evaluate(t_ns, T_WC, stop=lambda: False)
+        assert "interrupted" not in finished and finished["refined"]["iterations"] == 2
+    finally:
+        online.close()

@@ -189,7 +189,8 @@ class OnlineMapping:
     def evaluate(self, t_ns: np.ndarray, T_WC: np.ndarray, stop: Callable[[], bool] | None = None) -> dict:
         """Mapping numbers for report.json, with render quality at the final frame poses ``T_WC`` (N, 4, 4) of
         the frames at times ``t_ns`` (N,) ns (call after :meth:`finish`); the refinement ends early once
-        ``stop()`` is true (``refined.iterations``: the steps taken; none taken, no ``refined``)."""
+        ``stop()`` is true (``refined.iterations``: the steps taken; none taken, no ``refined``; either way
+        ``interrupted`` is true, as when the run cut the map short before it)."""
         pose_at = {int(t): T for t, T in zip(t_ns, T_WC)}
         views = []
         for idx, image in self._eval_images.items():
@@ -215,7 +216,10 @@ class OnlineMapping:
         out["online"] = _rounded(self.mapper.evaluate(views))
         out["eval_s"] = round(time.perf_counter() - t0, 3)
         t0, done = time.perf_counter(), 0
-        while done < self.config.final_refine_iterations and not (stop is not None and stop()):
+        while done < self.config.final_refine_iterations:
+            if stop is not None and stop():
+                out["interrupted"] = True   # the refinement cut short (or never started) by a signal
+                break
             step = min(REFINE_CHUNK, self.config.final_refine_iterations - done)
             self.mapper.refine(step)
             done += step
