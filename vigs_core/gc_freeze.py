@@ -4,7 +4,7 @@ A full collection (generation 2) visits every container object the process track
 modules alone (torch, NumPy, OpenCV, rclpy and ours) give hundreds of thousands, none of which will ever be
 garbage. Full collections come whenever the objects that survived younger collections reach a quarter of those
 already old, so during tracking each one held the thread that triggered it for about as long as several frames
-take, and freed next to nothing (docs/benchmarks.md, issue 19). Freezing what exists once start-up is done
+take, and freed next to nothing (docs/benchmarks.md, issue 22). Freezing what exists once start-up is done
 (``gc.freeze``) leaves the collector only what the run itself creates. Start-up goes on after the first frame:
 the first keyframes compile the numba kernels and build the estimators, so what exists then is frozen once more.
 """
