@@ -408,8 +408,8 @@ class DenseOdometry:
             self._pose_rows.put(rows, 0, rel)
         tracked = [kf for kf in self.keyframes.values() if kf.tracked is not None and kf.tracked[0] in scales]
         if tracked:
-            rels = torch.stack([kf.tracked[1] for kf in tracked]).to(torch.float64)
-            rels[:, :3, 3] *= torch.tensor([scales[kf.tracked[0]] for kf in tracked], dtype=torch.float64)[:, None]
+            rels = torch.stack([kf.tracked[1] for kf in tracked])
+            rels[:, :3, 3] *= torch.tensor([scales[kf.tracked[0]] for kf in tracked], dtype=rels.dtype)[:, None]
             for kf, rel in zip(tracked, rels.unbind(0)):
                 kf.tracked = (kf.tracked[0], rel)
 

@@ -16,6 +16,7 @@ from vigs_core.geometry.so3 import (
     hat,
     vee,
     nearest_rotation,
+    relative_rotation_cosines,
     so3_exp,
     so3_log,
     so3_left_jacobian,

@@ -152,3 +152,10 @@ def so3_right_jacobian_inv(phi: torch.Tensor | np.ndarray) -> torch.Tensor | np.
 def so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
     """Inverse left Jacobian ``J_l^{-1}(phi) = J_r^{-1}(-phi)``."""
     return so3_right_jacobian_inv(-phi)
+
+
+def relative_rotation_cosines(R: torch.Tensor, R_batch: torch.Tensor) -> torch.Tensor:
+    """``cos`` of the angle of ``R^T R_j`` for each rotation of ``R_batch`` (N, 3, 3), (N,):
+    ``cos theta_j = (tr(R^T R_j) - 1) / 2`` with ``tr(A^T B) = sum_ab A_ab B_ab``; an angle test over many rotations
+    without an SO(3) logarithm each."""
+    return ((R_batch * R).sum(dim=(-2, -1)) - 1.0) / 2.0

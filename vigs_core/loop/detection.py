@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from vigs_core.frontend.correspondence import CorrespondenceEstimator, PixelGrid
-from vigs_core.geometry import se3_inverse, sim3_log, so3_log
+from vigs_core.geometry import relative_rotation_cosines, se3_inverse, sim3_log, so3_log
 from vigs_core.loop.config import LoopDetectionConfig, LoopVerificationConfig
 from vigs_core.loop.two_view import TwoViewCorrespondences, TwoViewResult, estimate_relative_sim3
 from vigs_core.solver import Intrinsics, reproject
@@ -131,13 +131,13 @@ def rotation_angle_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
 
 
 def rotation_cosines(T_new: torch.Tensor, T_old: Sequence[torch.Tensor]) -> np.ndarray:
-    """``cos`` of the relative rotation angle between ``T_new`` (4, 4) and each pose of ``T_old`` (N of (4, 4)):
-    ``cos theta_j = (tr(R_new^T R_j) - 1) / 2`` with ``tr(A^T B) = sum_ab A_ab B_ab`` (N,) (one vectorised pass
-    where :func:`rotation_angle_deg` per pair costs an SO(3) logarithm each; the poses are stacked in one copy, not
-    sliced and converted one by one: the history grows with the run)."""
-    R_new = T_new[:3, :3].to(F64).numpy()
-    R_old = torch.stack(list(T_old))[:, :3, :3].to(F64).numpy() if len(T_old) else np.zeros((0, 3, 3))
-    return (np.einsum("nab,ab->n", R_old, R_new) - 1.0) / 2.0
+    """``cos`` of the relative rotation angle between ``T_new`` (4, 4) and each pose of ``T_old`` (N of (4, 4)), (N,)
+    (:func:`~vigs_core.geometry.relative_rotation_cosines`, where :func:`rotation_angle_deg` per pair costs an
+    SO(3) logarithm each; the poses are stacked in one copy, not sliced and converted one by one: the history
+    grows with the run)."""
+    if not len(T_old):
+        return np.zeros(0)
+    return relative_rotation_cosines(T_new[:3, :3].to(F64), torch.stack(T_old)[:, :3, :3].to(F64)).numpy()
 
 
 def path_length(positions: torch.Tensor) -> float:

@@ -49,7 +49,7 @@ import cv2
 import numpy as np
 import torch
 
-from vigs_core.geometry import se3_inverse
+from vigs_core.geometry import relative_rotation_cosines, se3_inverse
 from vigs_core.heap import retain_freed_heap
 from vigs_core.mapping.anchor import anchored_update
 from vigs_core.mapping.gaussians import PARAMETER_FIELDS, GaussianMap
@@ -686,7 +686,7 @@ class GaussianMapper:
             return None
         poses = torch.stack([self.keyframes[k].T_WC for k in kept])
         dist = (poses[:, :3, 3] - kf.T_WC[:3, 3]).norm(dim=1)
-        cos = ((poses[:, :3, :3] * kf.T_WC[:3, :3]).sum(dim=(1, 2)) - 1.0) / 2.0   # tr(R_j^T R_k) = 1 + 2 cos
+        cos = relative_rotation_cosines(kf.T_WC[:3, :3], poses[:, :3, :3])
         near = (dist <= c.cull_baseline * float(depth[valid].median())) & (
             cos >= math.cos(math.radians(c.cull_rotation_deg)))
         if not bool(near.any()):
@@ -696,6 +696,8 @@ class GaussianMapper:
     def _release_covered(self) -> None:
         """Release the covered keyframes that left the local window (the ``window`` most recent): their Gaussians
         follow the kept keyframe near them from now on (:func:`anchored_update` moves them with it)."""
+        if not self._covered:
+            return
         recent = set(self._window(max(self.keyframes)))
         for k in [k for k in self._covered if k not in recent]:
             cover = self._covered.pop(k)
