@@ -354,3 +354,18 @@ def test_the_worker_process_gets_images_and_disparities_once_each():
         driver.finish()   # the child ran detection on all of it (keyframe 4 against 0 and 1) without an error
     finally:
         driver.closure.close()
+
+
+def test_inertial_velocities_turn_and_scale_with_their_keyframes_corrections():
+    """``v' = c R_c v`` for every keyframe with an inertial state, in one batch; ids without one are skipped."""
+    from types import SimpleNamespace
+
+    from vigs_core.loop import rotate_velocities
+    C = {k: sim3_exp(torch.tensor([0.1 * k, 0.0, 0.2, 0.3, -0.1 * k, 0.05, 0.1 * k], dtype=D)) for k in range(3)}
+    v = {k: torch.tensor([1.0, -2.0, 0.5 * k], dtype=D) for k in (0, 2)}
+    states = {k: SimpleNamespace(velocity=v[k].clone()) for k in v}
+    rotate_velocities(states, C)
+    assert set(states) == {0, 2}
+    for k in v:
+        torch.testing.assert_close(states[k].velocity, C[k][:3, :3] @ v[k])   # C[:3, :3] = c R_c
+        assert abs(float(states[k].velocity.norm() / v[k].norm()) - math.exp(0.1 * k)) < 1e-12

@@ -72,6 +72,18 @@ def apply_to_odometry(odometry: Any, corrections: dict[int, torch.Tensor]) -> di
     return updates
 
 
+def rotate_velocities(states: dict[int, Any], corrections: dict[int, torch.Tensor]) -> None:
+    """Keyframes' inertial velocities under their corrections, ``v' = c R_c v`` (``C[:3, :3] = c R_c``), in one
+    batched product; ``states`` maps keyframe ids to objects with a ``velocity`` (3,), ids without one are left
+    out."""
+    ids = [k for k in corrections if k in states]
+    if ids:
+        C = torch.stack([corrections[k] for k in ids]).to(F64)
+        v = torch.stack([states[k].velocity for k in ids]).to(F64)
+        for k, v_new in zip(ids, (C[:, :3, :3] @ v[..., None])[..., 0].unbind(0)):
+            states[k].velocity = v_new
+
+
 def apply_to_mapper(mapper: Any, updates: dict[int, tuple[torch.Tensor, float]]) -> None:
     """Queue the corrected keyframe poses and depth scales on a :class:`vigs_core.mapping.mapper.GaussianMapper`:
     its anchored Gaussians follow in one batch (Eq. 6-7)."""

@@ -32,7 +32,7 @@ import torch
 from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowEstimator
 from vigs_core.geometry import se3_inverse
-from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrections_for
+from vigs_core.loop.apply import apply_to_mapper, apply_to_odometry, corrections_for, rotate_velocities
 from vigs_core.loop.closure import LoopClosure
 from vigs_core.loop.config import LoopConfig, LoopVerificationConfig
 from vigs_core.loop.detection import KeyframeView, positive_reciprocal
@@ -167,10 +167,8 @@ class LoopClosureDriver:
         updates = apply_to_odometry(self.odometry, corrections)
         self.closure.record_applied({k: c for k, (_, c) in updates.items()})
         vio = getattr(self.odometry, "vio", None)
-        for k, C in corrections.items():
-            state = getattr(vio, "states", {}).get(k) if vio is not None else None
-            if state is not None:   # v' = c R_c v, and C[:3, :3] = c R_c
-                state.velocity = C[:3, :3].to(F64) @ state.velocity.to(F64)
+        if vio is not None:
+            rotate_velocities(vio.states, corrections)
         if self.mapper is not None:
             apply_to_mapper(self.mapper, updates)
         if self.on_update is not None:
