@@ -4,10 +4,13 @@ small changes accumulate until they pass the tolerance instead of being dropped 
 import numpy as np
 import torch
 
+from ros_bags import SAMPLE_BAG
 from vigs_core.camera import CameraModel
+from vigs_core.frontend.keyframe_changes import KeyframeTable
 from vigs_core.frontend.odometry import Keyframe
 from vigs_core.geometry import se3_inverse, se3_exp
 from vigs_core.system import PipelineConfig
+from vigs_core.system.sources import open_input
 from vigs_ros.frontend_engine import FrameOutput, FrontendEngine
 
 D = torch.float64
@@ -95,3 +98,56 @@ def test_only_keyframes_whose_tensors_were_replaced_are_compared(monkeypatch):
     out = FrameOutput(30, None)
     engine.report_keyframes(out, metric=False)
     assert len(examined) == 1 and list(out.updated_keyframes) == [150]
+
+
+def test_the_change_log_notes_every_assignment_once_per_consumer():
+    """Each consumer's cursor lists the keyframes put in or assigned since it last looked, each once, whoever
+    made the change; a late consumer starts with every keyframe; attributes nobody reports are not noted."""
+    table = KeyframeTable()
+    first = table.subscribe()
+    disp = torch.ones(6, dtype=D)
+    for k in range(4):
+        table[k] = Keyframe(k, 10 * k, None, torch.eye(4, dtype=D), disp.clone())
+    late = table.subscribe()
+    assert first.take() == [0, 1, 2, 3] and late.take() == [0, 1, 2, 3] and first.take() == []
+    table[2].pose = torch.eye(4, dtype=D) * 2
+    table[0].set_disparities(disp * 2)
+    table[3].rescale_depth(1.5)
+    table[1].tracked = (0, torch.eye(4, dtype=D))   # not part of what consumers are sent
+    assert first.take() == [0, 2, 3]
+    table[1].image = table[1].disp = None           # settled
+    assert first.take() == [1] and late.take() == [0, 1, 2, 3]
+    loose = Keyframe(9, 90, None, torch.eye(4, dtype=D), None)
+    loose.pose = torch.eye(4, dtype=D)              # in no table yet: nothing to note
+    assert first.take() == []
+
+
+def test_no_change_of_the_core_escapes_the_report():
+    """Reporting visits only the keyframes the change log lists: over the sample's IMU initialisation (the world
+    re-expressed), BA, settling keyframes and a loop correction, after every frame each keyframe's current pose,
+    disparity revision and depth scale are the ones last compared, and a settled keyframe's reference keeps no
+    disparities."""
+    seq = open_input(SAMPLE_BAG)
+    engine = FrontendEngine(seq.camera, PipelineConfig(), seq.T_BS, seq.imu_noise)
+    imu, k = seq.imu, 0
+
+    def unseen() -> list[int]:
+        refs = engine._published._refs
+        return [i for i, kf in engine.odometry.keyframes.items()
+                if i not in refs or refs[i].seen_pose is not kf.pose or refs[i].seen_revision != kf.revision
+                or refs[i].seen_scale != kf.depth_scale or (kf.disp is None and refs[i].disp is not None)]
+
+    for n, (t_ns, image) in enumerate(seq.frames()):
+        if n == 280:
+            break
+        while k < len(imu) and not engine.stream.imu.covers(t_ns):
+            engine.stream.add_imu(int(imu.t_ns[k]), imu.gyro[k], imu.acc[k])
+            k += 1
+        if n == 260:   # a loop correction of every keyframe, as the loop detector sends one
+            ids = list(engine.odometry.keyframes)
+            G = se3_exp(torch.tensor([0.05, -0.02, 0.01, 0.0, 0.0, 0.02], dtype=D)).numpy()
+            poses = {i: G @ np.linalg.inv(engine.odometry.keyframes[i].pose.numpy()) for i in ids}
+            assert engine.apply_corrections(poses, {i: 1.01 for i in ids}) == len(ids)
+        engine.track(t_ns, image, "mono8")
+        assert unseen() == [], f"frame {n}"
+    assert engine.stream.metric and len(engine.odometry.keyframes) > engine.odometry.graph.config.window

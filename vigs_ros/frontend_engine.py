@@ -23,7 +23,7 @@ from msg_adapters.vigs import KeyframeData
 from vigs_core.camera import CameraModel
 from vigs_core.frontend.keyframe_changes import SentKeyframes
 from vigs_core.geometry import nearest_rotation
-from vigs_core.loop import apply_to_odometry
+from vigs_core.loop import apply_to_odometry, rotate_velocities
 from vigs_core.system import OdometryStream, PipelineConfig
 from vigs_core.system.stream import IMU_HISTORY_S
 from vigs_core.types import ImuNoise
@@ -84,6 +84,7 @@ class FrontendEngine:
         self.grid_shape = (self.odometry.grid.rows, self.odometry.grid.cols)
         self.pose_update_tolerance = pose_update_tolerance
         self._published = SentKeyframes()   # T_wc and depths last published of each keyframe
+        self._changes = self.odometry.keyframes.subscribe()   # keyframes changed since the last report
         self._metric = False
         self.last_corrections: dict[int, np.ndarray] = {}   # keyframe id -> Sim(3) C (4, 4) of the last correction
 
@@ -127,9 +128,10 @@ class FrontendEngine:
 
     def report_keyframes(self, out: FrameOutput, metric: bool) -> None:
         """Fill ``out.new_keyframes`` (with their states) and ``out.updated_keyframes`` from the core's
-        keyframes against what was published before. Only keyframes whose tensors were replaced since the last
-        call are compared: a long run keeps thousands of keyframes, of which BA changes only the window's."""
-        for kf_id in sorted(self.odometry.keyframes):
+        keyframes against what was published before. Only keyframes the core changed since the last call (its
+        change log, :class:`vigs_core.frontend.keyframe_changes.KeyframeTable`) are visited: a long run keeps
+        thousands of keyframes, of which BA changes only the window's."""
+        for kf_id in self._changes.take():
             kf = self.odometry.keyframes[kf_id]
             if kf_id not in self._published:
                 T_wc = self._rigid_inverse(kf.pose.numpy(), out)
@@ -153,23 +155,17 @@ class FrontendEngine:
         keyframe id) through :func:`vigs_core.loop.apply_to_odometry`, as the in-process loop closure does:
         the Sim(3) correction of keyframe ``k`` is ``C_k = S'_k T_WC,k^-1`` with ``S'_k = [c R', t']`` and
         inertial velocities rotate with it. Returns how many keyframes were corrected."""
-        corrections = {}
-        for k, T_new in poses.items():
-            kf = self.odometry.keyframes.get(int(k))
-            if kf is None:
-                continue
-            S = torch.as_tensor(T_new, dtype=torch.float64).clone()
-            S[:3, :3] *= float(scales.get(k, 1.0))
-            corrections[int(k)] = S @ kf.pose.to(torch.float64)  # S' T_WC^-1, and kf.pose is T_cw = T_WC^-1
-        if not corrections:
+        ids = [int(k) for k in poses if int(k) in self.odometry.keyframes]
+        if not ids:
             return 0
-        self.last_corrections = {k: C.numpy() for k, C in corrections.items()}
+        S = torch.from_numpy(np.stack([np.asarray(poses[k], dtype=np.float64) for k in ids]))
+        S[:, :3, :3] *= torch.tensor([float(scales.get(k, 1.0)) for k in ids], dtype=torch.float64)[:, None, None]
+        C = S @ torch.stack([self.odometry.keyframes[k].pose for k in ids]).to(torch.float64)   # kf.pose = T_WC^-1
+        corrections = dict(zip(ids, C.unbind(0)))
+        self.last_corrections = dict(zip(ids, C.numpy()))
         updates = apply_to_odometry(self.odometry, corrections)
         if self.inertial:
-            for k, C in corrections.items():
-                state = self.odometry.vio.states.get(k)
-                if state is not None:  # v' = c R_c v, with C[:3, :3] = c R_c
-                    state.velocity = C[:3, :3] @ state.velocity.to(torch.float64)
+            rotate_velocities(self.odometry.vio.states, corrections)
         for k, (T_wc, _) in updates.items():   # the loop detector publishes these corrections itself
             self._published.record(self.odometry.keyframes[k], T_wc.numpy())
         return len(updates)

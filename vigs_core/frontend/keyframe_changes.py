@@ -8,13 +8,24 @@ unchanged while its pose tensor, revision and depth scale are; within one revisi
 scales; across revisions it is the median per-cell ratio of the disparities (:func:`depth_scale_change`). The
 disparities of the reference are kept only until the keyframe settles (its disparities dropped by the
 frontend), so a long run keeps no per-keyframe arrays here.
+
+A long run keeps thousands of keyframes of which a frame changes a few (BA's window, a keyframe settling), so
+consumers do not compare every keyframe every frame: the odometry's keyframes live in a :class:`KeyframeTable`,
+which notes in a :class:`KeyframeChanges` log every keyframe put into it and every later assignment to one of
+its :data:`WATCHED` attributes (:meth:`~vigs_core.frontend.odometry.Keyframe.__setattr__`). Each consumer
+takes the ids noted since it last looked from its own :class:`ChangeCursor`; since every replacement of a
+keyframe's tensors is an assignment, no change escapes the log, whichever code made it.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any, Iterable
 
 import torch
+
+WATCHED = frozenset(("pose", "disp", "revision", "depth_scale", "image"))
+"""Keyframe attributes whose assignment is a change for the consumers (what :meth:`SentKeyframes.change`
+compares, and the pixels dropped when a keyframe settles)."""
 
 
 def depth_scale_change(d_old: torch.Tensor, d_new: torch.Tensor) -> float:
@@ -51,9 +62,6 @@ class SentKeyframes:
     def __contains__(self, kf_id: int) -> bool:
         return kf_id in self._refs
 
-    def ids(self) -> Iterator[int]:
-        return iter(list(self._refs))
-
     def record(self, kf: Any, T_WC: Any) -> None:
         """``kf`` was sent now, at pose ``T_WC`` (4, 4; a tensor or an array) and its current depths."""
         self._refs[kf.id] = _Reference(T_WC, kf.disp, kf.revision, kf.depth_scale, 1.0, kf.pose, kf.revision,
@@ -74,3 +82,51 @@ class SentKeyframes:
             ref.ratio *= depth_scale_change(ref.disp, kf.disp)
             ref.disp, ref.revision, ref.depth_scale = kf.disp, kf.revision, kf.depth_scale
         return ref.T_WC, ref.ratio * kf.depth_scale / ref.depth_scale
+
+
+class ChangeCursor:
+    """One consumer's view of a :class:`KeyframeChanges` log: the keyframe ids noted since its last :meth:`take`."""
+
+    def __init__(self, ids: Iterable[int]) -> None:
+        self._ids: set[int] = set(ids)
+
+    def take(self) -> list[int]:
+        """The ids noted since the last call (ascending), forgotten here."""
+        ids, self._ids = sorted(self._ids), set()
+        return ids
+
+
+class KeyframeChanges:
+    """The log of keyframe changes, fanned out to every subscribed :class:`ChangeCursor`."""
+
+    def __init__(self) -> None:
+        self._cursors: list[ChangeCursor] = []
+
+    def note(self, kf_id: int) -> None:
+        for cursor in self._cursors:
+            cursor._ids.add(kf_id)
+
+    def subscribe(self, existing: Iterable[int]) -> ChangeCursor:
+        """A cursor whose first :meth:`ChangeCursor.take` lists the ``existing`` keyframes too, so a consumer
+        that subscribes late sees every keyframe once."""
+        cursor = ChangeCursor(existing)
+        self._cursors.append(cursor)
+        return cursor
+
+
+class KeyframeTable(dict):
+    """Keyframe id -> keyframe, noting in :attr:`changes` every keyframe put in and binding it to the log, so
+    that assignments to its :data:`WATCHED` attributes are noted too (module docstring)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.changes = KeyframeChanges()
+
+    def __setitem__(self, kf_id: int, kf: Any) -> None:
+        object.__setattr__(kf, "changes", self.changes)
+        super().__setitem__(kf_id, kf)
+        self.changes.note(kf_id)
+
+    def subscribe(self) -> ChangeCursor:
+        """A consumer's cursor (:meth:`KeyframeChanges.subscribe`), starting with every keyframe held now."""
+        return self.changes.subscribe(iter(self))

@@ -55,6 +55,7 @@ import torch
 from vigs_core.frontend.correspondence import Correspondences, PixelGrid
 from vigs_core.frontend.dis_flow import DISFlowConfig, DISFlowEstimator
 from vigs_core.frontend.frame_graph import FrameGraph, FrameGraphConfig
+from vigs_core.frontend.keyframe_changes import WATCHED, KeyframeTable
 from vigs_core.frontend.keyframe_policy import KeyframePolicy, KeyframePolicyConfig
 from vigs_core.geometry import nearest_rotation, se3_exp, se3_inverse, se3_log
 from vigs_core.ranges import bounded
@@ -161,6 +162,13 @@ class Keyframe:
     tracked: tuple[int, torch.Tensor] | None = None
     revision: int = 0
     depth_scale: float = 1.0
+
+    def __setattr__(self, name: str, value: object) -> None:
+        """Assign, and note a change of a watched attribute in the log of the table holding the keyframe
+        (:class:`~vigs_core.frontend.keyframe_changes.KeyframeTable`; none before it is put in one)."""
+        object.__setattr__(self, name, value)
+        if name in WATCHED and (changes := self.__dict__.get("changes")) is not None:
+            changes.note(self.id)
 
     def set_disparities(self, disp: torch.Tensor) -> None:
         """New estimates of the disparities (P,): a new revision."""
@@ -297,7 +305,7 @@ class DenseOdometry:
         self.policy = KeyframePolicy(self.config.keyframes)
         self.graph = FrameGraph(self.config.graph)
         self.coords = torch.from_numpy(self.grid.coords())
-        self.keyframes: dict[int, Keyframe] = {}
+        self.keyframes: KeyframeTable = KeyframeTable()   # id -> Keyframe, changes logged for the consumers
         self._left_window: list[int] = []   # keyframes that left the window, images not yet dropped
         self.frames: list[_Frame] = []
         self._pose_rows = PoseRows()

@@ -27,6 +27,7 @@ chunks of ``REFINE_CHUNK`` steps and keeps those done.
 """
 from __future__ import annotations
 
+import itertools
 import random
 import time
 from dataclasses import dataclass, field
@@ -118,6 +119,8 @@ class OnlineMapping:
                              f"window ({window}): a keyframe is mapped while its image is still kept")
         self.config = config
         self.odometry = odometry
+        self._changes = odometry.keyframes.subscribe()   # keyframes changed since the last step (new ones too)
+        self._unsent: set[int] = set()                   # keyframes not sent to the mapper yet
         if config.process:
             self.mapper: GaussianMapper | MapperProcess = MapperProcess(config.mapper, camera, device,
                                                                         config.process_nice)
@@ -141,10 +144,9 @@ class OnlineMapping:
             self._sample_for_evaluation(image)
         self._frame_index += 1
         self._send_pose_updates()
-        ids = sorted(self.odometry.keyframes)
-        ready = ids[: max(0, len(ids) - self.config.keyframe_delay)]
-        for k in ready:
-            if k not in self._sent:
+        newest = list(itertools.islice(reversed(self.odometry.keyframes), self.config.keyframe_delay + 1))
+        if len(newest) > self.config.keyframe_delay:   # ids rise with insertion: the newest ``delay`` wait
+            for k in sorted(k for k in self._unsent if k <= newest[-1]):
                 self._send_keyframe(k)
 
     def on_correction(self, updates: dict[int, tuple[torch.Tensor, float]]) -> None:
@@ -162,9 +164,8 @@ class OnlineMapping:
         step it is taking and insert what is queued without refinement, for at most ``interrupted_drain_s``:
         :meth:`GaussianMapper.drain`). Returns whether the mapper drained with its refinement."""
         self._send_pose_updates()
-        for k in sorted(self.odometry.keyframes):
-            if k not in self._sent:
-                self._send_keyframe(k)
+        for k in sorted(self._unsent):
+            self._send_keyframe(k)
         t0 = time.perf_counter()
         while drain and not self.mapper.wait_idle(WAIT_POLL_S):
             drain = not (stop is not None and stop())
@@ -256,12 +257,18 @@ class OnlineMapping:
         T_WC = se3_inverse(kf.pose.to(F64))
         self.mapper.add_keyframe(k, T_WC, kf.image, self._depth(k, kf.disp.to(F64)), kf.t_ns)
         self._sent.record(kf, T_WC)
+        self._unsent.discard(k)
 
     def _send_pose_updates(self) -> None:
+        """Pose and depth-scale updates of the sent keyframes the odometry changed since the last call (its
+        change log); keyframes new to the log wait in ``_unsent``."""
         poses, scales = {}, {}
-        for k in self._sent.ids():
-            kf = self.odometry.keyframes.get(k)
-            change = None if kf is None else self._sent.change(kf)
+        for k in self._changes.take():
+            if k not in self._sent:
+                self._unsent.add(k)
+                continue
+            kf = self.odometry.keyframes[k]
+            change = self._sent.change(kf)
             if change is None:
                 continue
             T_old, c = change
