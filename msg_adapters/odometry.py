@@ -6,6 +6,8 @@ Odometry (REP-105): ``pose`` is ``T_frame_child`` in ``header.frame_id`` (e.g. `
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from msg_adapters.common import (
@@ -133,12 +135,19 @@ def trajectory_to_path(types: MessageTypes, traj: Trajectory, frame_id: str, t_n
 
 
 def poses_to_path(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, frame_id: str, stamp_ns: int):
-    """A ``nav_msgs/Path`` of rigid poses (N, 4, 4) at stamps (N,) ns in ``frame_id``, header stamp ``stamp_ns``:
-    the quaternions of all poses in one batched conversion and no per-pose checks (:func:`pose_msg` per pose is
-    too slow for a node that republishes a growing path; docs/benchmarks.md, live operation)."""
-    q = matrix_to_quat(np.asarray(T, dtype=np.float64)[:, :3, :3]).tolist()   # (N, 4) w, x, y, z
-    p = np.asarray(T, dtype=np.float64)[:, :3, 3].tolist()
-    rows = zip(np.asarray(t_ns).tolist(), p, q)
+    """A ``nav_msgs/Path`` of rigid poses (N, 4, 4) at stamps (N,) ns in ``frame_id``, header stamp ``stamp_ns``
+    (:func:`pose_stamped_messages`)."""
+    return types.new("nav_msgs/msg/Path", header=make_header(types, int(stamp_ns), frame_id),
+                     poses=pose_stamped_messages(types, t_ns, T, frame_id))
+
+
+def pose_stamped_messages(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, frame_id: str) -> list:
+    """``geometry_msgs/PoseStamped`` messages of rigid poses (N, 4, 4) at stamps (N,) ns in ``frame_id``: the
+    quaternions of all poses in one batched conversion and no per-pose checks (:func:`pose_msg` per pose is too
+    slow for a node that republishes a growing path; docs/benchmarks.md, live operation)."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    q = matrix_to_quat(T[:, :3, :3]).tolist()   # (N, 4) w, x, y, z
+    rows = zip(np.asarray(t_ns).tolist(), T[:, :3, 3].tolist(), q)
     new = types.new
     if isinstance(types, RclpyTypes):   # rclpy: fill default messages in place, 6x cheaper than keyword construction
         make = types.message_class("geometry_msgs/msg/PoseStamped")
@@ -151,12 +160,50 @@ def poses_to_path(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, frame_id
             pos.x, pos.y, pos.z = x, y, z
             rot.x, rot.y, rot.z, rot.w = qx, qy, qz, qw
             poses.append(ps)
-    else:
-        poses = [new("geometry_msgs/msg/PoseStamped", header=make_header(types, int(t), frame_id),
-                     pose=new("geometry_msgs/msg/Pose", position=new("geometry_msgs/msg/Point", x=x, y=y, z=z),
-                              orientation=new("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)))
-                 for t, (x, y, z), (qw, qx, qy, qz) in rows]
-    return new("nav_msgs/msg/Path", header=make_header(types, int(stamp_ns), frame_id), poses=poses)
+        return poses
+    return [new("geometry_msgs/msg/PoseStamped", header=make_header(types, int(t), frame_id),
+                pose=new("geometry_msgs/msg/Pose", position=new("geometry_msgs/msg/Point", x=x, y=y, z=z),
+                         orientation=new("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=qw)))
+            for t, (x, y, z), (qw, qx, qy, qz) in rows]
+
+
+class KeyframePath:
+    """A ``nav_msgs/Path`` of the newest ``max_poses`` keyframes, kept between publications: a keyframe's pose
+    message is built when the keyframe is new or moved (:meth:`set`), not at every publication. A long run
+    republishes thousands of keyframe poses every second, of which a frame moves only the window's few (building
+    them all took 31 ms at 5,600 poses and 0.3 s at 20,000; docs/benchmarks.md, issue 22)."""
+
+    def __init__(self, types: MessageTypes, frame_id: str, max_poses: int) -> None:
+        if max_poses < 1:
+            raise ValueError(f"KeyframePath needs max_poses >= 1, got {max_poses}")
+        self.types, self.frame_id, self.max_poses = types, frame_id, int(max_poses)
+        self._poses: dict[int, Any] = {}   # keyframe id -> PoseStamped, ascending ids
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    def set(self, ids: list[int], t_ns: np.ndarray, T: np.ndarray) -> None:
+        """Keyframes ``ids`` (N,) are at poses ``T`` (N, 4, 4), stamps ``t_ns`` (N,) ns, now (new or moved). Ids older
+        than every kept one once the path is full are left out: they fell off its start."""
+        oldest = next(iter(self._poses)) if len(self._poses) >= self.max_poses else None
+        rows = [n for n, k in enumerate(ids) if oldest is None or k >= oldest or k in self._poses]
+        if not rows:
+            return
+        messages = pose_stamped_messages(self.types, np.asarray(t_ns)[rows], np.asarray(T)[rows], self.frame_id)
+        inside = False   # an id added between kept ones
+        for n, msg in zip(rows, messages):
+            k = int(ids[n])
+            inside |= k not in self._poses and bool(self._poses) and k < next(reversed(self._poses))
+            self._poses[k] = msg
+        if inside:   # keep the path in id order
+            self._poses = dict(sorted(self._poses.items()))
+        while len(self._poses) > self.max_poses:
+            del self._poses[next(iter(self._poses))]
+
+    def message(self, stamp_ns: int):
+        """The path now, header stamp ``stamp_ns``."""
+        return self.types.new("nav_msgs/msg/Path", header=make_header(self.types, int(stamp_ns), self.frame_id),
+                              poses=list(self._poses.values()))
 
 
 def path_to_trajectory(msg) -> Trajectory:

@@ -9,8 +9,8 @@ from adapters_helpers import cdr_round_trip, types  # noqa: F401  (types is a fi
 from msg_adapters.camera_info import camera_info_to_model, model_to_camera_info
 from msg_adapters.common import matrix_to_quat_xyzw, quat_xyzw_to_matrix, stamp_to_ns
 from msg_adapters.imu import imu_messages_to_samples, imu_to_sample, sample_to_imu
-from msg_adapters.odometry import (odometry_messages, odometry_to_pose, path_to_trajectory, pose_to_odometry,
-                                   poses_to_path, trajectory_to_path)
+from msg_adapters.odometry import (KeyframePath, odometry_messages, odometry_to_pose, path_to_trajectory,
+                                   pose_to_odometry, poses_to_path, trajectory_to_path)
 from msg_adapters.tf import StampedTransform, tf_message, tf_message_to_transforms, transform_stamped
 from vigs_core.camera import CameraModel
 from vigs_core.geometry import so3_exp
@@ -156,6 +156,42 @@ def test_path_round_trip(types):
     assert fast.header.frame_id == "map" and stamp_to_ns(fast.header.stamp) == 7
     np.testing.assert_array_equal(path_to_trajectory(fast).t_ns, traj.t_ns)
     np.testing.assert_allclose(path_to_trajectory(fast).matrices(), poses, atol=1e-9)
+
+
+def test_a_keyframe_path_rebuilds_only_what_moved(types):
+    """The node's path keeps each keyframe's pose message until the keyframe moves: the message after any mix of
+    new, moved and evicted keyframes is the one built from scratch of the newest ``max_poses``, in id order."""
+    poses = {k: random_pose(k) for k in range(8)}
+    stamps = {k: 1_000_000 * (k + 1) for k in range(8)}
+    path = KeyframePath(types, "map", max_poses=5)
+
+    def put(ids):
+        path.set(ids, np.array([stamps[k] for k in ids]), np.stack([poses[k] for k in ids]))
+
+    def check(ids):
+        msg = cdr_round_trip(types, path.message(9), "nav_msgs/msg/Path")
+        ref = path_to_trajectory(poses_to_path(types, np.array([stamps[k] for k in ids]),
+                                               np.stack([poses[k] for k in ids]), "map", 9))
+        back = path_to_trajectory(msg)
+        assert msg.header.frame_id == "map" and stamp_to_ns(msg.header.stamp) == 9
+        np.testing.assert_array_equal(back.t_ns, ref.t_ns)
+        np.testing.assert_allclose(back.matrices(), ref.matrices(), atol=1e-12)
+
+    put([0, 1, 3])
+    check([0, 1, 3])
+    kept = path.message(0).poses[0]
+    poses[1] = random_pose(11)
+    put([1, 2])                 # one moved, one new between kept ones
+    check([0, 1, 2, 3])
+    assert path.message(0).poses[0] is kept   # keyframe 0 did not move: its message was not rebuilt
+    put([4, 5, 6])              # past max_poses: the oldest fall off
+    check([2, 3, 4, 5, 6])
+    poses[0] = random_pose(10)
+    put([0])                    # older than the whole path now: left out
+    check([2, 3, 4, 5, 6])
+    assert len(path) == 5
+    with pytest.raises(ValueError, match="max_poses >= 1"):
+        KeyframePath(types, "map", 0)
 
 
 def test_tf_message_round_trip(types):

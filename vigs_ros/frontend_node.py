@@ -94,7 +94,7 @@ from msg_adapters.camera_info import camera_info_to_model
 from msg_adapters.common import stamp_to_ns
 from msg_adapters.image import compressed_to_numpy, image_to_numpy
 from msg_adapters.imu import imu_to_sample
-from msg_adapters.odometry import pose_to_odometry, poses_to_path
+from msg_adapters.odometry import KeyframePath, pose_to_odometry
 from msg_adapters.tf import StampedTransform, tf_message
 from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import (
@@ -282,6 +282,8 @@ class FrontendNode(VigsNode):
         self.camera = camera
         self.engine = FrontendEngine(camera, self.config, self.T_bc, self.noise if self.p["sync_imu"] else None,
                                      float(self.p["imu_buffer_s"]))
+        self.path = KeyframePath(self.types, self.p["map_frame"], int(self.p["path_max_poses"]))
+        self.path_changes = self.engine.odometry.keyframes.subscribe()   # keyframes moved since the path was built
         if self.p["track_during_keyframe_work"]:
             self.engine.odometry.interleave = self.track_ready
         self.status.info["core"] = type(self.engine.odometry).__name__
@@ -557,11 +559,13 @@ class FrontendNode(VigsNode):
             self.publish_path(out.t_ns)
 
     def publish_path(self, t_ns: int) -> None:
-        """The keyframe body poses in the map frame as they are now (module docstring)."""
-        stamps, T_cw = self.engine.odometry.keyframe_poses()
-        keep = int(self.p["path_max_poses"])
-        T_wb = np.linalg.inv(T_cw.numpy()[-keep:]) @ np.linalg.inv(self.T_bc)
-        self.pub_path.publish(poses_to_path(self.types, stamps[-keep:], T_wb, self.p["map_frame"], t_ns))
+        """The keyframe body poses in the map frame as they are now (module docstring): the poses of the keyframes
+        the odometry changed since the last publication are rebuilt, the rest kept (:class:`KeyframePath`)."""
+        ids = self.path_changes.take()
+        if ids:
+            stamps, T_wc = self.engine.keyframe_poses(ids)
+            self.path.set(ids, stamps, T_wc @ np.linalg.inv(self.T_bc))
+        self.pub_path.publish(self.path.message(t_ns))
         self.path_changed, self.path_published = False, time.monotonic()
 
     def stop_tracking(self) -> None:
