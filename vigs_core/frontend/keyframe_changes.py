@@ -12,9 +12,10 @@ frontend), so a long run keeps no per-keyframe arrays here.
 A long run keeps thousands of keyframes of which a frame changes a few (BA's window, a keyframe settling), so
 consumers do not compare every keyframe every frame: the odometry's keyframes live in a :class:`KeyframeTable`,
 which notes in a :class:`KeyframeChanges` log every keyframe put into it and every later assignment to one of
-its :data:`WATCHED` attributes (:meth:`~vigs_core.frontend.odometry.Keyframe.__setattr__`). Each consumer
-takes the ids noted since it last looked from its own :class:`ChangeCursor`; since every replacement of a
-keyframe's tensors is an assignment, no change escapes the log, whichever code made it.
+its :data:`WATCHED` attributes (:meth:`~vigs_core.frontend.odometry.Keyframe.__setattr__`); the odometry also
+notes a keyframe leaving its window (the loop driver's views depend on it). Each consumer takes the ids noted
+since it last looked from its own :class:`ChangeCursor`; since every replacement of a keyframe's tensors is an
+assignment, no change escapes the log, whichever code made it.
 """
 from __future__ import annotations
 

@@ -654,6 +654,8 @@ class DenseOdometry:
     def _insert_into_graph(self, kf: Keyframe) -> list[tuple[int, int]]:
         new_edges, left = self.graph.add_keyframe(kf.id, self.predicted_flow)
         self._left_window += left
+        for k in left:   # window membership is a change for the loop driver (it sends the last disparities)
+            self.keyframes.changes.note(k)
         for e in list(self.edges):
             if e not in self.graph.edges:
                 del self.edges[e]

@@ -113,22 +113,26 @@ class LoopClosureDriver:
         # cached views (without image and disparities), with the keyframe's pose tensor, disparity revision,
         # depth scale and whether it was in the frontend's window when they were built
         self._views: dict[int, tuple[torch.Tensor, int, float, bool, KeyframeView]] = {}
+        self._changes = odometry.keyframes.subscribe()   # the odometry's change log (every keyframe at first)
+        self._dirty: set[int] = set()                    # keyframes it listed since the views were refreshed
 
     def step(self) -> PGBAResult | None:
         """Apply a finished PGBA, register new keyframes, start PGBA if a loop waits; returns the applied result."""
         result = self.closure.poll()
         if result is not None:
             self.apply(result)
-        new = [k for k in sorted(self.odometry.keyframes) if not self._registered or k > self._registered[-1]]
+        self._dirty.update(self._changes.take())
+        new = sorted(k for k in self._dirty if not self._registered or k > self._registered[-1])
         if new:
             views = self._current_views()
             carrying = [k for k, v in views.items() if v.image is not None or v.disp is not None]
+            view = lambda i: views[i] if i in views else self._views[i][4]   # noqa: E731  (rebuilt, else cached)
             for k in new:
-                history = [views[i] for i in self._registered]
+                history = [view(i) for i in self._registered]
                 prev = self._registered[-1] if self._registered else None
                 edges = {e: self.odometry.edges[e] for e in ((prev, k), (k, prev)) if e in self.odometry.edges}
-                a = views.get(prev)
-                b = views[k]
+                a = None if prev is None else view(prev)
+                b = view(k)
                 info = None if a is None or (prev, k) not in edges else OdometryEdgeInformation(
                     prev, k, a.T_WC.numpy().copy(), b.T_WC.numpy().copy(), self._depth(prev), self._depth(k),
                     edges[(prev, k)], edges.get((k, prev)), self.odometry.grid,
@@ -177,16 +181,19 @@ class LoopClosureDriver:
         return updates
 
     def _current_views(self) -> dict[int, KeyframeView]:
-        """Views of all keyframes, rebuilt where the keyframe changed since (BA in the window, the
-        visual-inertial world alignment that re-expresses every keyframe, a loop correction: the frontend
-        replaces the pose tensor, never edits it) or left the frontend's window, cached otherwise.
+        """Views of the keyframes rebuilt since the last call: those the odometry's change log listed (new, BA in
+        the window, the visual-inertial world alignment that re-expresses every keyframe, a loop correction, a
+        keyframe leaving the window) whose pose tensor, revision, depth scale or window membership differ from
+        their cached view's; the others' views are the cache's (``_views``).
 
         A view carries image and disparities when new, and the disparities again when the keyframe has just left
         the window (their last revision: the frontend drops them at the next frame). The detector keeps what
         views carry (:meth:`LoopDetector.keep`), so the cache holds views without either."""
+        self._dirty.update(self._changes.take())
         window = set(self.odometry.graph.keyframes)
         stale, images, disps = [], [], []
-        for k, kf in self.odometry.keyframes.items():
+        for k in sorted(self._dirty):
+            kf = self.odometry.keyframes[k]
             cached = self._views.get(k)
             state = (kf.revision, kf.depth_scale, k in window)
             if cached is None or cached[0] is not kf.pose or cached[1:4] != state:
@@ -198,7 +205,8 @@ class LoopClosureDriver:
         for kf, view in zip(stale, keyframe_views(stale, units, images, disps)):
             views[kf.id] = view
             self._views[kf.id] = (kf.pose, kf.revision, kf.depth_scale, kf.id in window, view.bare())
-        return {k: views[k] if k in views else self._views[k][4] for k in self.odometry.keyframes}
+        self._dirty.clear()
+        return views
 
     def _depth(self, k: int) -> np.ndarray:
         """(P,) float64 grid depths of window keyframe ``k`` (0 = unknown), from the frontend's disparities."""
