@@ -170,8 +170,8 @@ def pose_stamped_messages(types: MessageTypes, t_ns: np.ndarray, T: np.ndarray, 
 class KeyframePath:
     """A ``nav_msgs/Path`` of the newest ``max_poses`` keyframes, kept between publications: a keyframe's pose
     message is built when the keyframe is new or moved (:meth:`set`), not at every publication. A long run
-    republishes thousands of keyframe poses every second, of which a frame moves only the window's few (building
-    them all took 31 ms at 5,600 poses and 0.3 s at 20,000; docs/benchmarks.md, issue 22)."""
+    republishes thousands of keyframe poses every second, of which a frame moves only the window's few
+    (docs/benchmarks.md, issue 22)."""
 
     def __init__(self, types: MessageTypes, frame_id: str, max_poses: int) -> None:
         if max_poses < 1:

@@ -16,6 +16,6 @@ __all__ = [
     "KeyframePoseGraph", "KeyframeView", "LoopClosure", "LoopClosureDriver", "LoopConfig", "LoopDecision",
     "LoopDetectionConfig", "LoopDetector", "LoopEdge", "LoopGraphConfig", "LoopStats", "LoopVerificationConfig",
     "PGBAResult", "PoseGraph", "PoseGraphConfig", "PoseGraphResult", "TwoViewCorrespondences", "TwoViewResult",
-    "apply_to_mapper", "apply_to_odometry", "corrected_pose", "corrections_for", "rotate_velocities", "edge_information",
-    "estimate_relative_sim3", "keyframe_views", "optimize_pose_graph", "run_pgba",
+    "apply_to_mapper", "apply_to_odometry", "corrected_pose", "corrections_for", "edge_information",
+    "estimate_relative_sim3", "keyframe_views", "optimize_pose_graph", "rotate_velocities", "run_pgba",
 ]
