@@ -5,7 +5,7 @@ the relative-pose graph and compared with the keyframes at least ``loop.detectio
 (orientation gate, thumbnail ranking, dense-flow gate with :class:`vigs_core.frontend.DISFlowEstimator`,
 two-view verification, drift plausibility); an accepted loop triggers the Sim(3) pose-graph BA, whose
 per-keyframe corrections ``C_k`` give each keyframe its corrected pose ``T'_WC`` and depth scale ``c``
-(:func:`vigs_core.loop.corrected_pose`), published as one KeyframePoseUpdate.
+(:func:`vigs_core.loop.apply.corrected_poses`, all keyframes in one batch), published as one KeyframePoseUpdate.
 
 Topics (names are parameters; see params/loop_detector.yaml; ``loop.*`` are :class:`vigs_core.loop.LoopConfig`
 fields, ``flow.*`` :class:`vigs_core.frontend.DISFlowConfig` fields):
@@ -32,7 +32,8 @@ from msg_adapters.types import RclpyTypes
 from msg_adapters.vigs import PoseUpdateData, msg_to_keyframe, msg_to_pose_update, pose_update_to_msg
 from vigs_core.frontend import DISFlowConfig, DISFlowEstimator, PixelGrid
 from vigs_core.heap import map_large_blocks
-from vigs_core.loop import KeyframeView, LoopClosure, LoopConfig, corrected_pose, corrections_for
+from vigs_core.loop import KeyframeView, LoopClosure, LoopConfig, corrections_for
+from vigs_core.loop.apply import corrected_poses
 from vigs_core.ranges import Range
 from vigs_core.solver import Intrinsics
 from vigs_ros.diagnostics import StatusReporter
@@ -129,18 +130,18 @@ class LoopDetectorNode(VigsNode):
 
     def publish_corrections(self, corrections: dict[int, torch.Tensor]) -> None:
         """Corrected poses and depth scales of every stored keyframe; stored views follow."""
-        updates = {}
-        for k, C in corrections_for(sorted(self.views), corrections).items():
-            T, c = corrected_pose(C, self.views[k].T_WC)
-            updates[k] = (T, c)
-            self._replace_view(k, T, c)
-        if not updates:
+        per_kf = corrections_for(sorted(self.views), corrections)
+        if not per_kf:
             return
-        self.closure.record_applied({k: c for k, (_, c) in updates.items()})
-        ids = sorted(updates)
+        ids = list(per_kf)   # ascending
+        T, c = corrected_poses(torch.stack([per_kf[k] for k in ids]),
+                               torch.stack([self.views[k].T_WC for k in ids]))
+        scales = c.tolist()
+        for k, T_k, c_k in zip(ids, T.unbind(0), scales):
+            self._replace_view(k, T_k, c_k)
+        self.closure.record_applied(dict(zip(ids, scales)))
         self.pub_update.publish(pose_update_to_msg(self.types, PoseUpdateData(
-            self.get_clock().now().nanoseconds, np.array(ids), np.stack([updates[k][0].numpy() for k in ids]),
-            np.array([updates[k][1] for k in ids]), self.p["map_frame"])))
+            self.get_clock().now().nanoseconds, np.array(ids), T.numpy(), np.array(scales), self.p["map_frame"])))
         self.status.count("corrections_out")
         self.get_logger().info(f"loop closure: corrected {len(ids)} keyframes")
 
