@@ -20,7 +20,7 @@ def test_an_unchanged_keyframe_reports_nothing_and_a_new_pose_its_sent_one():
     kf, sent = keyframe(), SentKeyframes()
     T0 = torch.eye(4, dtype=D)
     sent.record(kf, T0)
-    assert 7 in sent and list(sent.ids()) == [7] and sent.change(kf) is None
+    assert 7 in sent and 8 not in sent and sent.change(kf) is None
     kf.pose = kf.pose.clone()   # the frontend replaces the tensor when it changes the pose
     T_old, c = sent.change(kf)
     assert T_old is T0 and c == 1.0
