@@ -12,7 +12,8 @@ from vigs_core.camera.model import CameraModel
 from vigs_core.frontend import DISFlowEstimator, PixelGrid
 from vigs_core.geometry import quat_to_matrix, so3_exp
 from vigs_core.loop.config import LoopDetectionConfig
-from vigs_core.loop.detection import KeyframeView, LoopDetector, rotation_angle_deg, rotation_cosines
+from vigs_core.loop.detection import (KeyframeView, LoopDetector, ThumbnailRows, rotation_angle_deg,
+                                       rotation_cosines, thumbnail)
 from vigs_core.sim.render import Renderer
 from vigs_core.sim.scene import build_room_scene
 from vigs_core.solver import Intrinsics
@@ -156,3 +157,25 @@ def test_only_candidates_within_the_check_rotation_get_dense_flow():
     detector.estimator.estimate = lambda *a, **k: calls.append(1) or estimate(*a, **k)
     detector.detect(new, [near, far])
     assert len(calls) == 1   # the zero-flow test of the candidate within the bound only
+
+
+def test_candidates_come_best_thumbnail_first_from_rows_that_grow_with_the_run():
+    """Thumbnails are the rows of one array that grows past its capacity and keeps every keyframe's row; the
+    candidates' correlations with the new keyframe are scored in one product, best match first."""
+    rng = np.random.default_rng(0)
+    rows = ThumbnailRows(12, capacity=4)
+    vecs = {k: rng.normal(size=12).astype(np.float32) for k in range(10)}
+    for k, v in vecs.items():
+        rows.put(k, v)
+    probe = rng.normal(size=12).astype(np.float32)
+    np.testing.assert_allclose(rows.scores([7, 0, 3], probe), [vecs[k] @ probe for k in (7, 0, 3)], rtol=1e-5)
+    np.testing.assert_array_equal(rows.row(9), vecs[9])
+    assert 9 in rows and 10 not in rows
+    new = view(100, 0.0, [0.0, 0.0, 1.5])
+    history = [view(0, 25.0, [0.0, 0.0, 1.5]), view(1, 0.0, [0.0, 0.0, 1.5]), view(2, 10.0, [0.0, 0.0, 1.5])]
+    detector = LoopDetector(DISFlowEstimator(GRID), INTR)
+    size = detector.detection.thumbnail_size
+    t_new = thumbnail(new.image, size)
+    expected = sorted(history, key=lambda kf: -float(thumbnail(kf.image, size) @ t_new))
+    assert [kf.id for kf in detector.candidates(new, history)] == [kf.id for kf in expected]
+    assert expected[0].id == 1   # the same view as the new keyframe's

@@ -125,6 +125,37 @@ def thumbnail(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return small / max(float(np.linalg.norm(small)), 1e-6)
 
 
+class ThumbnailRows:
+    """Keyframe thumbnails (D,) float32 as the rows of one growing array (capacity doubled when full): a long run
+    keeps one per keyframe, and a block of its own per keyframe stayed in the heap between image-sized
+    temporaries for the whole run (issue 19); rows also rank all candidates in one product."""
+
+    def __init__(self, dim: int, capacity: int = 256) -> None:
+        self._rows = np.zeros((capacity, dim), dtype=np.float32)
+        self._index: dict[int, int] = {}
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._index
+
+    def put(self, kf_id: int, thumb: np.ndarray) -> None:
+        n = len(self._index)
+        if n == len(self._rows):
+            grown = np.zeros((2 * n, self._rows.shape[1]), dtype=np.float32)
+            grown[:n] = self._rows
+            self._rows = grown
+        self._rows[n] = thumb
+        self._index[kf_id] = n
+
+    def row(self, kf_id: int) -> np.ndarray:
+        """The thumbnail of ``kf_id`` (a copy)."""
+        return self._rows[self._index[kf_id]].copy()
+
+    def scores(self, ids: list[int], thumb: np.ndarray) -> np.ndarray:
+        """Correlations (N,) of the thumbnails of ``ids`` with ``thumb`` (one product over all rows, then picked:
+        no copy of the rows)."""
+        return (self._rows[:len(self._index)] @ thumb)[[self._index[k] for k in ids]]
+
+
 def rotation_angle_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
     """Angle (degrees) of the relative rotation of two poses (4, 4)."""
     return math.degrees(float(so3_log(T_a[:3, :3].T @ T_b[:3, :3]).norm()))
@@ -163,17 +194,17 @@ class LoopDetector:
         self.intr = intrinsics
         self.detection = detection or LoopDetectionConfig()
         self.verification = verification or LoopVerificationConfig()
-        self._thumbs: dict[int, np.ndarray] = {}
+        w, h = self.detection.thumbnail_size
+        self._thumbs = ThumbnailRows(w * h)
         self._images = SpillStore(images, "loop-images")
         self._disps = SpillStore(images, "loop-depths")   # id -> (disparities (P,), [their depth_scale])
         self._revisions: dict[int, int] = {}   # id -> revision of the kept disparities
         self._coords = torch.from_numpy(self.grid.coords()).to(F64)   # (P, 2) grid pixels
         self._last_loop_kf: int | None = None
 
-    def _thumb(self, kf: KeyframeView) -> np.ndarray:
+    def _keep_thumbnail(self, kf: KeyframeView) -> None:
         if kf.id not in self._thumbs:
-            self._thumbs[kf.id] = thumbnail(self.image(kf), self.detection.thumbnail_size)
-        return self._thumbs[kf.id]
+            self._thumbs.put(kf.id, thumbnail(self.image(kf), self.detection.thumbnail_size))
 
     def image(self, kf: KeyframeView) -> np.ndarray:
         """The view's image, or the one kept when the keyframe was new (KeyError for a keyframe never seen)."""
@@ -210,8 +241,10 @@ class LoopDetector:
         old = [kf for kf in history if kf.id <= new.id - cfg.min_keyframe_gap]
         cos_max = math.cos(math.radians(cfg.max_orientation_deg))
         ranked = [(kf, c) for kf, c in zip(old, rotation_cosines(new.T_WC, [kf.T_WC for kf in old])) if c > cos_max]
-        t_new = self._thumb(new)
-        ranked.sort(key=lambda kc: -float(self._thumb(kc[0]) @ t_new))
+        for kf in (new, *(kf for kf, _ in ranked)):
+            self._keep_thumbnail(kf)
+        scores = self._thumbs.scores([kf.id for kf, _ in ranked], self._thumbs.row(new.id))
+        ranked = [ranked[i] for i in np.argsort(-scores, kind="stable")]
         cos_check = math.cos(math.radians(cfg.max_check_rotation_deg))
         return [kf for kf, c in ranked[:cfg.max_flow_checks] if c > cos_check]
 
@@ -262,7 +295,7 @@ class LoopDetector:
         cfg = self.detection
         for kf in (new, *history):
             self.keep(kf)
-        self._thumb(new)
+        self._keep_thumbnail(new)
         decision = LoopDecision()
         if self._last_loop_kf is not None and new.id - self._last_loop_kf < cfg.min_keyframes_between_loops:
             return decision
