@@ -155,3 +155,15 @@ def test_no_change_of_the_core_escapes_the_report():
         assert left <= set(cursor.take()), f"frame {n}"
         window, exits = list(engine.odometry.graph.keyframes), exits + len(left)
     assert engine.stream.metric and exits > 0
+
+
+def test_a_dropped_consumer_stops_collecting_changes():
+    """The log holds its cursors weakly: a consumer gone before the odometry leaves nothing behind that grows."""
+    import gc
+
+    table = KeyframeTable()
+    kept, dropped = table.subscribe(), table.subscribe()
+    del dropped
+    gc.collect()
+    table[0] = Keyframe(0, 0, None, torch.eye(4, dtype=D), None)
+    assert len(table.changes._cursors) == 1 and kept.take() == [0]

@@ -19,6 +19,7 @@ assignment, no change escapes the log, whichever code made it.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any, Iterable
 
@@ -98,10 +99,11 @@ class ChangeCursor:
 
 
 class KeyframeChanges:
-    """The log of keyframe changes, fanned out to every subscribed :class:`ChangeCursor`."""
+    """The log of keyframe changes, fanned out to every subscribed :class:`ChangeCursor` that is still in use (held
+    weakly: a consumer dropped before the odometry does not keep collecting ids)."""
 
     def __init__(self) -> None:
-        self._cursors: list[ChangeCursor] = []
+        self._cursors: weakref.WeakSet[ChangeCursor] = weakref.WeakSet()
 
     def note(self, kf_id: int) -> None:
         for cursor in self._cursors:
@@ -111,7 +113,7 @@ class KeyframeChanges:
         """A cursor whose first :meth:`ChangeCursor.take` lists the ``existing`` keyframes too, so a consumer
         that subscribes late sees every keyframe once."""
         cursor = ChangeCursor(existing)
-        self._cursors.append(cursor)
+        self._cursors.add(cursor)
         return cursor
 
 
