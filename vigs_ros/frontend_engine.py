@@ -150,12 +150,6 @@ class FrontendEngine:
                 out.updated_keyframes[kf_id] = (T_wc, c)
             self._published.record(kf, T_wc)
 
-    def keyframe_poses(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """Stamps (N,) ns and camera poses ``T_wc`` (N, 4, 4) of the keyframes ``ids`` as they are now."""
-        kfs = [self.odometry.keyframes[k] for k in ids]
-        T_cw = torch.stack([kf.pose for kf in kfs]).to(torch.float64).numpy()
-        return np.array([kf.t_ns for kf in kfs], dtype=np.int64), np.linalg.inv(T_cw)
-
     def apply_corrections(self, poses: dict[int, np.ndarray], scales: dict[int, float]) -> int:
         """Apply external keyframe corrections (loop closure: new ``T_WC`` (4, 4) and depth scale ``c`` per
         keyframe id) through :func:`vigs_core.loop.apply_to_odometry`, as the in-process loop closure does:

@@ -563,8 +563,8 @@ class FrontendNode(VigsNode):
         the odometry changed since the last publication are rebuilt, the rest kept (:class:`KeyframePath`)."""
         ids = self.path_changes.take()
         if ids:
-            stamps, T_wc = self.engine.keyframe_poses(ids)
-            self.path.set(ids, stamps, T_wc @ np.linalg.inv(self.T_bc))
+            stamps, T_cw = self.engine.odometry.keyframe_poses(ids)
+            self.path.set(ids, stamps, np.linalg.inv(T_cw.numpy()) @ np.linalg.inv(self.T_bc))
         self.pub_path.publish(self.path.message(t_ns))
         self.path_changed, self.path_published = False, time.monotonic()
 

@@ -429,9 +429,9 @@ class DenseOdometry:
         posed = ~np.isnan(odom[:, 3, 3])
         return t[posed], torch.from_numpy(odom[posed])
 
-    def keyframe_poses(self) -> tuple[np.ndarray, torch.Tensor]:
-        """Times (K,) ns and world->camera poses (K, 4, 4) of all keyframes."""
-        kfs = [self.keyframes[k] for k in sorted(self.keyframes)]
+    def keyframe_poses(self, ids: list[int] | None = None) -> tuple[np.ndarray, torch.Tensor]:
+        """Times (K,) ns and world->camera poses (K, 4, 4) of the keyframes ``ids`` (default: all, ascending)."""
+        kfs = [self.keyframes[k] for k in (sorted(self.keyframes) if ids is None else ids)]
         return np.array([k.t_ns for k in kfs], dtype=np.int64), self._stack([k.pose for k in kfs])
 
     def predicted_flow(self, i: int, j: int) -> float:
